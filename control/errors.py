@@ -1,0 +1,21 @@
+"""Exception hierarchy of the math layer (``oralnav.control``).
+
+Every error raised by control code derives from :class:`ControlError`, so callers (the
+daemon, the CLI) can catch the layer as a whole and still tell the kinds apart.
+"""
+
+
+class ControlError(Exception):
+    """Base of every error raised by ``oralnav.control``."""
+
+
+class GeometryError(ControlError, ValueError):
+    """A transform or rotation is malformed (wrong shape, not finite, not a rotation)."""
+
+
+class CameraModelError(ControlError, ValueError):
+    """A camera model is malformed (bad intrinsics, distortion or image size)."""
+
+
+class MarkerFieldError(ControlError, ValueError):
+    """A marker field is malformed (unknown dictionary, id overflow, impossible surface)."""
