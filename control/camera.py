@@ -164,21 +164,24 @@ class CameraModel:
         return self.project(p @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3])
 
     # -- back-projection --------------------------------------------------------------
-    def undistort_normalized(self, uv: np.ndarray, *, iterations: int = 8) -> np.ndarray:
+    def undistort_normalized(self, uv: np.ndarray, *, iterations: int = 8,
+                             seed: np.ndarray | None = None) -> np.ndarray:
         """Pixels (N x 2) -> undistorted normalised coordinates (N x 2).
 
-        OpenCV's fixed-point ``undistortPoints`` seeds the solution; a few Gauss-Newton steps
-        on our own forward model then bring the reprojection residual to ~1e-10 px. Pixels
-        where the model does not invert (residual above 1e-6 px) come back as NaN.
+        OpenCV's fixed-point ``undistortPoints`` seeds the solution (unless ``seed``, a close
+        guess, is given); a few Gauss-Newton steps on our own forward model then bring the
+        reprojection residual to ~1e-10 px. Pixels where the model does not invert
+        (residual above 1e-6 px) come back as NaN.
         """
         uv = np.asarray(uv, dtype=float).reshape(-1, 2)
         if uv.size == 0:
             return uv.copy()
-        seed = _undistort_points_iter(
-            uv.reshape(-1, 1, 2), self.K, self.dist, R=None, P=None,
-            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12),
-        ).reshape(-1, 2)
-        xy = seed.astype(float)
+        if seed is None:
+            seed = _undistort_points_iter(
+                uv.reshape(-1, 1, 2), self.K, self.dist, R=None, P=None,
+                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-12),
+            )
+        xy = np.asarray(seed, dtype=float).reshape(-1, 2)
         eps = 1e-7
         for _ in range(iterations):
             f = self.normalized_to_pixels(xy) - uv
@@ -193,6 +196,28 @@ class CameraModel:
         resid = np.linalg.norm(self.normalized_to_pixels(xy) - uv, axis=1)
         xy[~(resid < 1e-6)] = np.nan
         return xy
+
+    def ray_map(self, step: int = 8) -> np.ndarray:
+        """Undistorted normalised coordinates of every pixel centre (H x W x 2, float64).
+
+        Solved exactly on a ``step``-pixel grid, spline-interpolated in between, then
+        polished by two Gauss-Newton steps per pixel: the same accuracy as
+        :meth:`undistort_normalized` on every pixel at a fraction of the cost.
+        """
+        from scipy.ndimage import map_coordinates
+
+        w, h = self.size
+        gu = np.arange(0, w + step, step, dtype=float)
+        gv = np.arange(0, h + step, step, dtype=float)
+        GU, GV = np.meshgrid(gu, gv)
+        coarse = self.undistort_normalized(np.stack([GU.ravel(), GV.ravel()], axis=1))
+        coarse = coarse.reshape(len(gv), len(gu), 2)
+        v, u = np.mgrid[0:h, 0:w].astype(float)
+        coords = np.stack([v.ravel() / step, u.ravel() / step])
+        guess = np.stack([map_coordinates(coarse[..., k], coords, order=3, mode="nearest")
+                          for k in range(2)], axis=1)
+        uv = np.stack([u.ravel(), v.ravel()], axis=1)
+        return self.undistort_normalized(uv, iterations=2, seed=guess).reshape(h, w, 2)
 
     def backproject(self, uv: np.ndarray) -> np.ndarray:
         """Pixels (N x 2) -> unit viewing rays in the camera frame (N x 3)."""

@@ -116,12 +116,11 @@ class _CameraState:
         w, h = cam.size
         u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
         if cam.has_distortion:
-            xy = cam.undistort_normalized(np.stack([u.ravel(), v.ravel()], axis=1))
-            if np.isnan(xy).any():
-                bad = int(np.isnan(xy).any(axis=1).sum())
+            rays = cam.ray_map()
+            if np.isnan(rays).any():
+                bad = int(np.isnan(rays).any(axis=-1).sum())
                 raise RenderError(f"camera {cam.name!r}: the distortion model does not invert "
                                   f"at {bad} pixels; check its dist coefficients")
-            rays = xy.reshape(h, w, 2)
         else:
             K = cam.K
             rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]], axis=-1)

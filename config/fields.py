@@ -1,0 +1,119 @@
+"""The marker-field file: ChArUco fields and the surfaces they are stuck on.
+
+See docs/formats.md. Lengths in metres.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field, model_validator
+
+from oralnav.control.markers import (
+    CylinderSurface,
+    MarkerField,
+    PlaneSurface,
+    PointsSurface,
+)
+
+from .errors import ConfigError
+from .loader import Strict, build, read_toml, resolve, validate
+
+Length = Annotated[float, Field(gt=0, le=1.0)]
+
+
+class SurfaceEntry(Strict):
+    kind: Literal["plane", "cylinder", "points"] = "plane"
+    radius: Length | None = None
+    file: str | None = None
+
+    @model_validator(mode="after")
+    def _keys_for_kind(self) -> SurfaceEntry:
+        if self.kind == "cylinder" and self.radius is None:
+            raise ValueError("a cylinder surface needs radius (metres)")
+        if self.kind != "cylinder" and self.radius is not None:
+            raise ValueError(f"radius applies to cylinders only, not to a {self.kind}")
+        if self.kind == "points" and not self.file:
+            raise ValueError("a points surface needs file (a CSV: corner_id,x,y,z)")
+        if self.kind != "points" and self.file is not None:
+            raise ValueError(f"file applies to points surfaces only, not to a {self.kind}")
+        return self
+
+
+class FieldEntry(Strict):
+    family: Literal["charuco"] = "charuco"
+    dictionary: str
+    squares: tuple[Annotated[int, Field(ge=2, le=200)], Annotated[int, Field(ge=2, le=200)]]
+    square: Length
+    marker: Length
+    first_id: Annotated[int, Field(ge=0)] = 0
+    surface: SurfaceEntry = SurfaceEntry()
+
+
+class FieldsFile(Strict):
+    fields: dict[str, FieldEntry] = Field(min_length=1)
+
+
+def read_corner_table(path: Path) -> dict[int, tuple[float, float, float]]:
+    """Read a ``corner_id,x,y,z`` CSV (field frame, metres)."""
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            rows = list(csv.reader(f))
+    except OSError as exc:
+        raise ConfigError(path, "", f"cannot read corner table: {exc.strerror or exc}") from None
+    if not rows or [c.strip() for c in rows[0]] != ["corner_id", "x", "y", "z"]:
+        raise ConfigError(path, "", "first line must be the header corner_id,x,y,z")
+    out: dict[int, tuple[float, float, float]] = {}
+    for n, row in enumerate(rows[1:], start=2):
+        if not row or all(not c.strip() for c in row):
+            continue
+        try:
+            cid = int(row[0])
+            xyz = tuple(float(v) for v in row[1:])
+        except ValueError:
+            raise ConfigError(path, f"line {n}", f"not an id and three numbers: {row}") from None
+        if len(xyz) != 3:
+            raise ConfigError(path, f"line {n}", f"expected 4 columns, got {len(row)}")
+        if cid in out:
+            raise ConfigError(path, f"line {n}", f"corner {cid} listed twice")
+        out[cid] = xyz  # type: ignore[assignment]
+    return out
+
+
+def fields_from_dict(data: dict, path: str | Path) -> dict[str, MarkerField]:
+    """Validate a parsed fields document and build its :class:`MarkerField` objects."""
+    doc = validate(FieldsFile, data, path)
+    fields: dict[str, MarkerField] = {}
+    for name, e in doc.fields.items():
+        s = e.surface
+        if s.kind == "cylinder":
+            surface = CylinderSurface(radius=s.radius)
+        elif s.kind == "points":
+            table = resolve(path, s.file)
+            surface = PointsSurface(points=read_corner_table(table), source=str(table))
+        else:
+            surface = PlaneSurface()
+        fields[name] = build(path, f"fields.{name}", lambda n=name, e=e, surface=surface:
+                             MarkerField(name=n, dictionary=e.dictionary, squares=e.squares,
+                                         square=e.square, marker=e.marker,
+                                         first_id=e.first_id, surface=surface))
+    # Two fields printing the same marker ids from one dictionary cannot be told apart.
+    names = list(fields)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            fa, fb = fields[a], fields[b]
+            if fa.dictionary == fb.dictionary:
+                lo = max(fa.first_id, fb.first_id)
+                hi = min(fa.first_id + fa.marker_count, fb.first_id + fb.marker_count) - 1
+                if lo <= hi:
+                    raise ConfigError(path, f"fields.{b}.first_id",
+                                      f"marker ids {lo}..{hi} of {fa.dictionary} are also used "
+                                      f"by field {a!r}; fields must not share ids")
+    return fields
+
+
+def load_fields(path: str | Path) -> dict[str, MarkerField]:
+    """Read and validate a marker-field file; raises ``ConfigError`` naming file and key."""
+    return fields_from_dict(read_toml(path), path)

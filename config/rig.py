@@ -1,0 +1,74 @@
+"""The rig file: cameras, their intrinsics and their poses in the reference frame.
+
+See docs/formats.md. Lengths in metres, intrinsics in pixels.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from oralnav.control.camera import CameraModel, Rig
+
+from .loader import Strict, atomic_write_text, build, dump_toml, read_toml, validate
+
+Matrix = list[list[float]]
+
+
+class CameraEntry(Strict):
+    size: tuple[Annotated[int, Field(gt=0, le=65535)], Annotated[int, Field(gt=0, le=65535)]]
+    K: Matrix
+    dist: list[float] = Field(default_factory=lambda: [0.0] * 5)
+    T_ref_cam: Matrix = Field(default_factory=lambda: np.eye(4).tolist())
+
+    @field_validator("K")
+    @classmethod
+    def _k_shape(cls, v: Matrix) -> Matrix:
+        if len(v) != 3 or any(len(r) != 3 for r in v):
+            raise ValueError("K must be a 3x3 matrix")
+        return v
+
+    @field_validator("T_ref_cam")
+    @classmethod
+    def _t_shape(cls, v: Matrix) -> Matrix:
+        if len(v) != 4 or any(len(r) != 4 for r in v):
+            raise ValueError("T_ref_cam must be a 4x4 matrix")
+        return v
+
+
+class RigFile(Strict):
+    reference: str
+    cameras: dict[str, CameraEntry] = Field(min_length=1)
+
+
+def rig_from_dict(data: dict, path: str | Path) -> Rig:
+    """Validate a parsed rig document and build the :class:`Rig`."""
+    doc = validate(RigFile, data, path)
+    cams = {}
+    for name, e in doc.cameras.items():
+        cams[name] = build(path, f"cameras.{name}", lambda n=name, e=e: CameraModel(
+            n, e.size, np.array(e.K), np.array(e.dist), np.array(e.T_ref_cam)))
+    return build(path, "reference", lambda: Rig(doc.reference, cams))
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Read and validate a rig file; raises ``ConfigError`` naming file and key."""
+    return rig_from_dict(read_toml(path), path)
+
+
+def rig_to_dict(rig: Rig) -> dict:
+    return {"reference": rig.reference,
+            "cameras": {n: {"size": list(c.size), "K": c.K.tolist(), "dist": c.dist.tolist(),
+                            "T_ref_cam": c.T_ref_cam.tolist()} for n, c in rig.cameras.items()}}
+
+
+def save_rig(rig: Rig, path: str | Path) -> None:
+    """Write ``rig`` atomically in the rig format (the old file stays on any error)."""
+    text = "# oralnav rig: lengths in metres, intrinsics in pixels\n" + dump_toml(rig_to_dict(rig))
+    # Re-read what we are about to write: a file we cannot load back is never written.
+    rig_from_dict(tomllib.loads(text), path)
+    atomic_write_text(path, text)
