@@ -6,22 +6,25 @@ See docs/formats.md. Lengths in metres.
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import Field, model_validator
+import numpy as np
+from pydantic import Field, field_validator, model_validator
 
 from oralnav.control.markers import (
     CylinderSurface,
     MarkerField,
     PlaneSurface,
     PointsSurface,
+    aruco_dictionary,
 )
 
 from .errors import ConfigError
-from .loader import Strict, build, read_toml, resolve, validate
+from .loader import Float, Int, Strict, build, read_toml, resolve_file, validate
 
-Length = Annotated[float, Field(gt=0, le=1.0)]
+Length = Annotated[Float, Field(gt=0, le=1.0)]
 
 
 class SurfaceEntry(Strict):
@@ -45,11 +48,17 @@ class SurfaceEntry(Strict):
 class FieldEntry(Strict):
     family: Literal["charuco"] = "charuco"
     dictionary: str
-    squares: tuple[Annotated[int, Field(ge=2, le=200)], Annotated[int, Field(ge=2, le=200)]]
+    squares: tuple[Annotated[Int, Field(ge=2, le=200)], Annotated[Int, Field(ge=2, le=200)]]
     square: Length
     marker: Length
-    first_id: Annotated[int, Field(ge=0)] = 0
+    first_id: Annotated[Int, Field(ge=0)] = 0
     surface: SurfaceEntry = SurfaceEntry()
+
+    @field_validator("dictionary")
+    @classmethod
+    def _known_dictionary(cls, v: str) -> str:
+        aruco_dictionary(v)  # a MarkerFieldError (a ValueError) names OpenCV's dictionaries
+        return v
 
 
 class FieldsFile(Strict):
@@ -59,10 +68,13 @@ class FieldsFile(Strict):
 def read_corner_table(path: Path) -> dict[int, tuple[float, float, float]]:
     """Read a ``corner_id,x,y,z`` CSV (field frame, metres)."""
     try:
-        with path.open(newline="", encoding="utf-8") as f:
+        # utf-8-sig: spreadsheets often start a CSV with a byte-order mark
+        with path.open(newline="", encoding="utf-8-sig") as f:
             rows = list(csv.reader(f))
     except OSError as exc:
         raise ConfigError(path, "", f"cannot read corner table: {exc.strerror or exc}") from None
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise ConfigError(path, "", f"not a UTF-8 CSV corner table: {exc}") from None
     if not rows or [c.strip() for c in rows[0]] != ["corner_id", "x", "y", "z"]:
         raise ConfigError(path, "", "first line must be the header corner_id,x,y,z")
     out: dict[int, tuple[float, float, float]] = {}
@@ -76,10 +88,51 @@ def read_corner_table(path: Path) -> dict[int, tuple[float, float, float]]:
             raise ConfigError(path, f"line {n}", f"not an id and three numbers: {row}") from None
         if len(xyz) != 3:
             raise ConfigError(path, f"line {n}", f"expected 4 columns, got {len(row)}")
+        if not all(math.isfinite(v) for v in xyz):
+            raise ConfigError(path, f"line {n}", f"corner {cid}: x, y, z must be finite: {row}")
         if cid in out:
             raise ConfigError(path, f"line {n}", f"corner {cid} listed twice")
         out[cid] = xyz  # type: ignore[assignment]
     return out
+
+
+def _check_entry(path: str | Path, name: str, e: FieldEntry) -> None:
+    """The field's cross-key checks, each reported at the key to change. ``MarkerField``
+    repeats them; doing them here first names ``[fields.NAME] KEY`` rather than the field."""
+    key = f"fields.{name}"
+    nx, ny = e.squares
+    if e.marker >= e.square:
+        raise ConfigError(path, f"{key}.marker",
+                          f"marker side ({e.marker} m) must be smaller than square ({e.square} m)")
+    count = nx * ny // 2
+    size = aruco_dictionary(e.dictionary).bytesList.shape[0]
+    if e.first_id + count > size:
+        raise ConfigError(path, f"{key}.first_id",
+                          f"a {nx}x{ny} board has {count} markers, so ids {e.first_id}.."
+                          f"{e.first_id + count - 1} overflow {e.dictionary}, which has ids "
+                          f"0..{size - 1}; first_id must be at most {size - count}")
+    width = nx * e.square
+    if e.surface.kind == "cylinder" and width / e.surface.radius > 2 * np.pi:
+        raise ConfigError(path, f"{key}.surface.radius",
+                          f"radius {e.surface.radius} m is too small for the sheet: a {width:g} m "
+                          f"wide sheet would wrap {np.degrees(width / e.surface.radius):.0f} deg "
+                          f"(at most 360); radius must be >= {width / (2 * np.pi):.6f} m")
+
+
+def _points_surface(path: str | Path, name: str, e: FieldEntry) -> PointsSurface:
+    key = f"fields.{name}.surface.file"
+    table = resolve_file(path, key, e.surface.file)
+    points = read_corner_table(table)
+    nx, ny = e.squares
+    n = (nx - 1) * (ny - 1)
+    bad = sorted(i for i in points if not 0 <= i < n)
+    if bad:
+        raise ConfigError(path, key, f"{table.name}: corner ids {bad[:5]} are outside 0..{n - 1} "
+                                     f"of a {nx}x{ny} board")
+    if len(points) < 4:
+        raise ConfigError(path, key, f"{table.name}: a points surface needs at least 4 corners, "
+                                     f"got {len(points)}")
+    return PointsSurface(points=points, source=str(table))
 
 
 def fields_from_dict(data: dict, path: str | Path) -> dict[str, MarkerField]:
@@ -87,12 +140,12 @@ def fields_from_dict(data: dict, path: str | Path) -> dict[str, MarkerField]:
     doc = validate(FieldsFile, data, path)
     fields: dict[str, MarkerField] = {}
     for name, e in doc.fields.items():
+        _check_entry(path, name, e)
         s = e.surface
         if s.kind == "cylinder":
             surface = CylinderSurface(radius=s.radius)
         elif s.kind == "points":
-            table = resolve(path, s.file)
-            surface = PointsSurface(points=read_corner_table(table), source=str(table))
+            surface = _points_surface(path, name, e)
         else:
             surface = PlaneSurface()
         fields[name] = build(path, f"fields.{name}", lambda n=name, e=e, surface=surface:

@@ -8,15 +8,17 @@ rename, so a crash or a bad value never leaves a half-written file or loses the 
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import tempfile
 import tomllib
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Annotated, Any, TypeVar
 
 from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import Strict as _StrictType
 
 from .errors import ConfigError
 
@@ -24,10 +26,19 @@ M = TypeVar("M", bound=BaseModel)
 T = TypeVar("T")
 
 
-class Strict(BaseModel):
-    """Base of every file schema: unknown keys are errors, values are frozen."""
+#: A TOML number: an integer or a float, never a string or a boolean (lax pydantic would
+#: take ``"0.3"`` or ``true`` for a number and hide a typo in the file).
+Float = Annotated[float, _StrictType()]
+#: A TOML integer: never a float, a string or a boolean.
+Int = Annotated[int, _StrictType()]
 
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=False)
+
+class Strict(BaseModel):
+    """Base of every file schema: unknown keys are errors, values are frozen, numbers are
+    finite (TOML's ``nan`` and ``inf`` are rejected). Use :data:`Float` and :data:`Int` for
+    numbers; arrays stay lax so a TOML array fills a tuple field."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=False, allow_inf_nan=False)
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:
@@ -48,10 +59,17 @@ def read_toml(path: str | Path) -> dict[str, Any]:
 
 
 def _loc(loc: Iterable[Any]) -> str:
-    # pydantic adds the union member or validator name to some locations; drop them
-    parts = [str(p) for p in loc if not (isinstance(p, str) and (
-        p.startswith("function-") or p in {"tagged-union", "union"}))]
-    return ".".join(parts)
+    # pydantic adds the union member or validator name to some locations; drop them.
+    # Array indices attach to their key (``size[0]``) so the key stays the last dotted part.
+    out = ""
+    for p in loc:
+        if isinstance(p, str) and (p.startswith("function-") or p in {"tagged-union", "union"}):
+            continue
+        if isinstance(p, int):
+            out += f"[{p}]"
+        else:
+            out += f".{p}" if out else str(p)
+    return out
 
 
 def validate(model: type[M], data: Mapping[str, Any], path: str | Path, prefix: str = "") -> M:
@@ -67,6 +85,9 @@ def validate(model: type[M], data: Mapping[str, Any], path: str | Path, prefix: 
         for e in errs:
             key = ".".join(p for p in (prefix, _loc(e["loc"])) if p)
             msg = e["msg"]
+            if e["type"] in {"value_error", "assertion_error"}:
+                # a validator's own message: drop pydantic's "Value error, " prefix
+                msg = str(e.get("ctx", {}).get("error", msg))
             if e["type"] == "extra_forbidden":
                 msg = "unknown key (check its spelling and section)"
             elif "input" in e and e["type"] not in {"missing"} and not isinstance(
@@ -95,24 +116,54 @@ def resolve(base_file: str | Path, ref: str | Path) -> Path:
     return ref if ref.is_absolute() else Path(base_file).resolve().parent / ref
 
 
-def atomic_write_text(path: str | Path, text: str) -> None:
-    """Write ``text`` to ``path`` atomically; on failure the old file is untouched."""
+def resolve_file(base_file: str | Path, key: str, ref: str | Path) -> Path:
+    """:func:`resolve`, then check the file exists: a missing file is reported against the
+    file and key that name it (``base_file``, ``key``), not just by its own path."""
+    target = resolve(base_file, ref)
+    if not target.is_file():
+        raise ConfigError(base_file, key, f"file not found: {target}")
+    return target
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically: a temporary file in the same folder, fsync,
+    rename, fsync of the folder. On any failure the temporary file is removed and an
+    existing ``path`` is unchanged; an existing file's permissions are kept."""
     path = Path(path)
     if not path.parent.is_dir():
-        raise FileNotFoundError(f"{path.parent}: folder does not exist")
+        raise FileNotFoundError(
+            errno.ENOENT, f"cannot write {str(path)!r}: folder {str(path.parent)!r} does not "
+            "exist", str(path.parent))
+    mode = (path.stat().st_mode & 0o777) if path.is_file() else 0o644
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, mode)
         os.replace(tmp, path)
     except BaseException:
         try:
             os.unlink(tmp)
-        except FileNotFoundError:
+        except OSError:
             pass
         raise
+    try:  # make the rename durable; not every platform can open a folder
+        dfd = os.open(path.parent, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(dfd)
+    except OSError:
+        pass
+    finally:
+        os.close(dfd)
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    """Write UTF-8 ``text`` to ``path`` atomically (see :func:`atomic_write_bytes`)."""
+    atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def toml_value(v: Any) -> str:
@@ -124,14 +175,23 @@ def toml_value(v: Any) -> str:
     if isinstance(v, float):
         if not math.isfinite(v):
             raise ValueError(f"cannot write non-finite number {v} to TOML")
-        return repr(v)
+        return repr(float(v))  # float(): numpy's float64 repr is "np.float64(...)"
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if hasattr(v, "tolist"):
-        v = v.tolist()
+        # basic string: escape the backslash, the quote and control characters
+        return '"' + "".join(
+            "\\" + c if c in '\\"' else f"\\u{ord(c):04x}" if ord(c) < 0x20 or ord(c) == 0x7F
+            else c for c in v) + '"'
+    if hasattr(v, "tolist"):  # numpy arrays and scalars
+        return toml_value(v.tolist())
     if isinstance(v, list | tuple):
         return "[" + ", ".join(toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def toml_key(k: str) -> str:
+    """A key in TOML syntax: bare when it can be, else quoted (``"left cam"``, ``"a.b"``)."""
+    return k if k and all(c.isascii() and (c.isalnum() or c in "_-") for c in k) \
+        else toml_value(str(k))
 
 
 def dump_toml(doc: Mapping[str, Any], _prefix: str = "") -> str:
@@ -142,10 +202,10 @@ def dump_toml(doc: Mapping[str, Any], _prefix: str = "") -> str:
         if isinstance(v, Mapping):
             tables.append((k, v))
         else:
-            lines.append(f"{k} = {toml_value(v)}")
+            lines.append(f"{toml_key(k)} = {toml_value(v)}")
     out = "\n".join(lines)
     for k, v in tables:
-        name = f"{_prefix}.{k}" if _prefix else k
+        name = f"{_prefix}.{toml_key(k)}" if _prefix else toml_key(k)
         body = dump_toml(v, name)
         out += ("\n\n" if out else "") + f"[{name}]\n" + body
     return out.rstrip() + "\n" if not _prefix else out

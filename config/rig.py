@@ -12,31 +12,50 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field, field_validator
 
-from oralnav.control.camera import CameraModel, Rig
+from oralnav.control.camera import DIST_LENGTHS, CameraModel, Rig
+from oralnav.control.geometry import as_transform
 
-from .loader import Strict, atomic_write_text, build, dump_toml, read_toml, validate
+from .loader import Float, Int, Strict, atomic_write_text, build, dump_toml, read_toml, validate
 
-Matrix = list[list[float]]
+Matrix = list[list[Float]]
+Pixels = Annotated[Int, Field(gt=0, le=65535)]
 
 
 class CameraEntry(Strict):
-    size: tuple[Annotated[int, Field(gt=0, le=65535)], Annotated[int, Field(gt=0, le=65535)]]
+    size: tuple[Pixels, Pixels]
     K: Matrix
-    dist: list[float] = Field(default_factory=lambda: [0.0] * 5)
+    dist: list[Float] = Field(default_factory=lambda: [0.0] * 5)
     T_ref_cam: Matrix = Field(default_factory=lambda: np.eye(4).tolist())
 
+    # The camera model checks these too; checking them here names the offending key.
     @field_validator("K")
     @classmethod
     def _k_shape(cls, v: Matrix) -> Matrix:
         if len(v) != 3 or any(len(r) != 3 for r in v):
             raise ValueError("K must be a 3x3 matrix")
+        if v[0][0] <= 0 or v[1][1] <= 0:
+            raise ValueError("K focal lengths fx = K[0][0] and fy = K[1][1] must be positive")
+        if v[0][1] != 0 or v[1][0] != 0 or list(v[2]) != [0.0, 0.0, 1.0]:
+            raise ValueError("K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew)")
+        return v
+
+    @field_validator("dist")
+    @classmethod
+    def _dist_length(cls, v: list[float]) -> list[float]:
+        if len(v) not in DIST_LENGTHS:
+            raise ValueError(f"dist must have {', '.join(map(str, DIST_LENGTHS))} entries "
+                             f"(OpenCV order k1 k2 p1 p2 [k3 ...]), got {len(v)}")
         return v
 
     @field_validator("T_ref_cam")
     @classmethod
-    def _t_shape(cls, v: Matrix) -> Matrix:
+    def _t_rigid(cls, v: Matrix) -> Matrix:
         if len(v) != 4 or any(len(r) != 4 for r in v):
             raise ValueError("T_ref_cam must be a 4x4 matrix")
+        try:
+            as_transform(v, what="T_ref_cam")
+        except ValueError as exc:  # the key is already in the message's location
+            raise ValueError(str(exc).removeprefix("T_ref_cam: ")) from None
         return v
 
 
@@ -67,8 +86,13 @@ def rig_to_dict(rig: Rig) -> dict:
 
 
 def save_rig(rig: Rig, path: str | Path) -> None:
-    """Write ``rig`` atomically in the rig format (the old file stays on any error)."""
-    text = "# oralnav rig: lengths in metres, intrinsics in pixels\n" + dump_toml(rig_to_dict(rig))
+    """Write ``rig`` atomically in the rig format (the old file stays on any error).
+
+    Raises ``ConfigError`` naming ``path`` when the rig cannot be written as a valid rig
+    file (a non-finite value, a camera the format cannot hold); ``OSError`` on I/O failure.
+    """
+    text = build(path, "", lambda: "# oralnav rig: lengths in metres, intrinsics in pixels\n"
+                 + dump_toml(rig_to_dict(rig)))
     # Re-read what we are about to write: a file we cannot load back is never written.
-    rig_from_dict(tomllib.loads(text), path)
+    rig_from_dict(build(path, "", lambda: tomllib.loads(text)), path)
     atomic_write_text(path, text)

@@ -10,42 +10,52 @@ from pathlib import Path
 from typing import Annotated
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from oralnav.control.geometry import as_transform, transform_from_euler
 from oralnav.sim.scene import Blot, Imaging, Placement, Rod, Scene
 
 from .errors import ConfigError
 from .fields import load_fields
-from .loader import Strict, build, read_toml, resolve, validate
+from .loader import Float, Int, Strict, build, read_toml, resolve_file, validate
 from .rig import load_rig
 
-Vec3 = tuple[float, float, float]
-Level = Annotated[float, Field(ge=0, le=255)]
+Vec3 = tuple[Float, Float, Float]
+Level = Annotated[Float, Field(ge=0, le=255)]
 
 
 class ImagingEntry(Strict):
-    supersample: Annotated[int, Field(ge=1, le=4)] = 2
+    supersample: Annotated[Int, Field(ge=1, le=4)] = 2
     background: Level = 40.0
     white: Level = 220.0
     black: Level = 20.0
     body: Level = 150.0
-    illumination_gradient: tuple[Annotated[float, Field(ge=-1.5, le=1.5)],
-                                 Annotated[float, Field(ge=-1.5, le=1.5)]] = (0.0, 0.0)
-    blur_sigma_px: Annotated[float, Field(ge=0, le=20)] = 0.0
-    read_noise_dn: Annotated[float, Field(ge=0, le=50)] = 0.0
-    shot_noise_gain: Annotated[float, Field(ge=0, le=10)] = 0.0
-    motion_samples: Annotated[int, Field(ge=1, le=64)] = 1
-    exposure: Annotated[float, Field(gt=0, le=1.0)] = 0.01
+    illumination_gradient: tuple[Annotated[Float, Field(ge=-1.5, le=1.5)],
+                                 Annotated[Float, Field(ge=-1.5, le=1.5)]] = (0.0, 0.0)
+    blur_sigma_px: Annotated[Float, Field(ge=0, le=20)] = 0.0
+    read_noise_dn: Annotated[Float, Field(ge=0, le=50)] = 0.0
+    shot_noise_gain: Annotated[Float, Field(ge=0, le=10)] = 0.0
+    motion_samples: Annotated[Int, Field(ge=1, le=64)] = 1
+    exposure: Annotated[Float, Field(gt=0, le=1.0)] = 0.01
 
 
 class PlacementEntry(Strict):
     field: str
-    T_ref_field: list[list[float]] | None = None
+    T_ref_field: list[list[Float]] | None = None
     translation: Vec3 | None = None
     euler_xyz_deg: Vec3 | None = None
     velocity: Vec3 = (0.0, 0.0, 0.0)
     angular_velocity_deg_s: Vec3 = (0.0, 0.0, 0.0)
+
+    @field_validator("T_ref_field")
+    @classmethod
+    def _t_rigid(cls, v: list[list[float]] | None) -> list[list[float]] | None:
+        if v is not None:
+            try:
+                as_transform(v, what="T_ref_field")
+            except ValueError as exc:  # the key is already in the message's location
+                raise ValueError(str(exc).removeprefix("T_ref_field: ")) from None
+        return v
 
     @model_validator(mode="after")
     def _one_pose(self) -> PlacementEntry:
@@ -60,21 +70,21 @@ class PlacementEntry(Strict):
 class RodEntry(Strict):
     p0: Vec3
     p1: Vec3
-    radius: Annotated[float, Field(gt=0, le=0.1)]
+    radius: Annotated[Float, Field(gt=0, le=0.1)]
     level: Level = 90.0
 
 
 class BlotEntry(Strict):
     placement: str
-    center: tuple[float, float]
-    radius: Annotated[float, Field(gt=0, le=0.1)]
+    center: tuple[Float, Float]
+    radius: Annotated[Float, Field(gt=0, le=0.1)]
     level: Level = 60.0
 
 
 class SceneFile(Strict):
     rig: str
     fields: str
-    seed: Annotated[int, Field(ge=0, lt=2**63)] = 0
+    seed: Annotated[Int, Field(ge=0, lt=2**63)] = 0
     imaging: ImagingEntry = ImagingEntry()
     placements: dict[str, PlacementEntry] = Field(min_length=1)
     rods: dict[str, RodEntry] = Field(default_factory=dict)
@@ -85,8 +95,8 @@ def load_scene(path: str | Path) -> Scene:
     """Read a scene file and the rig and fields files it names; all validated."""
     path = Path(path)
     doc = validate(SceneFile, read_toml(path), path)
-    rig = load_rig(resolve(path, doc.rig))
-    fields = load_fields(resolve(path, doc.fields))
+    rig = load_rig(resolve_file(path, "rig", doc.rig))
+    fields = load_fields(resolve_file(path, "fields", doc.fields))
     placements = []
     for name, e in doc.placements.items():
         key = f"placements.{name}"

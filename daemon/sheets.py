@@ -26,11 +26,9 @@ every square edge and the detected corners against this.
 
 from __future__ import annotations
 
-import errno
 import math
 import os
 import struct
-import tempfile
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -39,6 +37,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from oralnav.config.loader import atomic_write_bytes
 from oralnav.control.markers import (
     CylinderSurface,
     MarkerField,
@@ -415,43 +414,8 @@ def write_png(path: str | os.PathLike[str], image: np.ndarray, dpi: float) -> No
         raise SheetError(
             f"image must be non-empty uint8 H x W or H x W x 1/3/4, got {image.dtype} "
             f"{image.shape}")
-    target = Path(path)
-    parent = target.parent
-    if not parent.is_dir():
-        raise FileNotFoundError(
-            errno.ENOENT, f"cannot write {str(target)!r}: directory {str(parent)!r} does not "
-            "exist", str(parent))
     data = _encode_png(image, dpi)  # before touching the file system
-    mode = (target.stat().st_mode & 0o777) if target.is_file() else 0o644
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, mode)
-        os.replace(tmp, target)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    _fsync_dir(parent)
-
-
-def _fsync_dir(directory: Path) -> None:
-    """Make the rename durable (best effort: not every platform can open directories)."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
+    atomic_write_bytes(path, data)
 
 
 def read_png_dpi(path: str | os.PathLike[str]) -> float | None:

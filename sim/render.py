@@ -260,9 +260,7 @@ class SceneRenderer:
                 patches.append(patch)
         n_fields = len(self.scene.placements)
         for k, rod in enumerate(self.scene.rods):
-            patch = self._rod_patch(st, rod, T_cam_ref, owner=n_fields + k + 1)
-            if patch is not None:
-                patches.append(patch)
+            patches += self._rod_patches(st, rod, T_cam_ref, owner=n_fields + k + 1)
 
         signal = st.background.copy()
         owner = np.zeros(signal.shape, np.uint8)
@@ -496,16 +494,31 @@ class SceneRenderer:
                           corners_px=uv[idx], obliquity=np.arccos(np.clip(cos_obl[idx], -1, 1)))
 
     # -- rods -------------------------------------------------------------------------
-    def _rod_patch(self, st: _CameraState, rod: Rod, T_cam_ref: np.ndarray,
-                   owner: int) -> _Patch | None:
+    def _rod_patches(self, st: _CameraState, rod: Rod, T_cam_ref: np.ndarray,
+                     owner: int) -> list[_Patch]:
+        """A rod as short pieces, each ray-cast only inside its own small box (a long
+        diagonal rod's single box would be mostly empty)."""
         p0 = transform_points(T_cam_ref, rod.p0[None])[0]
         p1 = transform_points(T_cam_ref, rod.p1[None])[0]
+        length = float(np.linalg.norm(p1 - p0))
+        if length == 0:
+            return []
+        ends = self._bbox(st.cam, np.stack([p0, p1]), pad=0)
+        span = 0 if ends is None else max(ends[2] - ends[0], ends[3] - ends[1])
+        n = max(1, min(64, span // 48))
+        out = []
+        for k in range(n):
+            patch = self._rod_piece(st, rod, p0, p1, k / n, (k + 1) / n, owner)
+            if patch is not None:
+                out.append(patch)
+        return out
+
+    def _rod_piece(self, st: _CameraState, rod: Rod, p0: np.ndarray, p1: np.ndarray,
+                   f0: float, f1: float, owner: int) -> _Patch | None:
+        """Part [f0, f1] (fractions of the length) of the rod from p0 to p1 (camera frame)."""
         axis = p1 - p0
         length = float(np.linalg.norm(axis))
-        if length == 0:
-            return None
         u = axis / length
-        # hull: two rings of the rod's surface at both ends
         e1 = np.cross(u, [1.0, 0.0, 0.0])
         if np.linalg.norm(e1) < 0.1:
             e1 = np.cross(u, [0.0, 1.0, 0.0])
@@ -513,39 +526,40 @@ class SceneRenderer:
         e2 = np.cross(u, e1)
         ang = np.linspace(0, 2 * np.pi, 16, endpoint=False)
         ring = rod.radius * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2)
-        along = np.linspace(0.0, 1.0, 17)[:, None, None] * axis
-        hull = (p0 + along + ring[None]).reshape(-1, 3)
-        box = self._bbox(st.cam, hull, pad=2)
+        along = np.linspace(f0, f1, 5)[:, None, None] * axis
+        box = self._bbox(st.cam, (p0 + along + ring[None]).reshape(-1, 3), pad=2)
         if box is None:
             return None
         x0, y0, x1, y1 = box
         s = self.scene.imaging.supersample
-        rays = st.sub_rays(x0, y0, x1, y1, s).astype(np.float64)
-        d = np.concatenate([rays, np.ones(rays.shape[:2] + (1,))], axis=-1)
-        du = d @ u
-        d_perp = d - du[..., None] * u
-        m_perp = p0 - (p0 @ u) * u
-        a = (d_perp * d_perp).sum(-1)
-        b = -2.0 * (d_perp @ m_perp)
-        c = m_perp @ m_perp - rod.radius ** 2
-        disc = b * b - 4 * a * c
+        rays = st.sub_rays(x0, y0, x1, y1, s)
+        x, y = rays[..., 0], rays[..., 1]
+        # ray d = [x, y, 1]; the cylinder is |perp(lam d - p0)| = r about axis u
+        uf = u.astype(np.float32)
+        du = uf[0] * x + uf[1] * y + uf[2]
+        m_perp = (p0 - (p0 @ u) * u).astype(np.float32)
+        dpx, dpy, dpz = x - du * uf[0], y - du * uf[1], 1.0 - du * uf[2]
+        a = dpx * dpx + dpy * dpy + dpz * dpz
+        b = -2.0 * (dpx * m_perp[0] + dpy * m_perp[1] + dpz * m_perp[2])
+        c = np.float32(m_perp @ m_perp - rod.radius ** 2)
+        disc = b * b - 4.0 * a * c
         with np.errstate(invalid="ignore", divide="ignore"):
-            lam = (-b - np.sqrt(disc)) / (2 * a)
-        along_s = lam * du - p0 @ u
-        hit = (disc > 0) & (lam > 0) & (along_s >= 0) & (along_s <= length)
-        # Light from the camera: a rod looks brighter where it faces the viewer.
-        P = lam[..., None] * d
-        radial = P - p0 - along_s[..., None] * u
-        with np.errstate(invalid="ignore", divide="ignore"):
-            n = radial / np.linalg.norm(radial, axis=-1, keepdims=True)
-            facing = np.abs((n * d).sum(-1)) / np.linalg.norm(d, axis=-1)
-        val = np.where(hit, rod.level * (0.55 + 0.45 * facing), 0.0).astype(np.float32)
-        alpha = hit.astype(np.float32)
-        if not alpha.any():
+            root = np.sqrt(disc)
+            lam = (-b - root) / (2.0 * a)
+        along_s = lam * du - np.float32(p0 @ u)
+        hit = (disc > 0) & (lam > 0) & (along_s >= f0 * length) & (along_s < f1 * length)
+        if not hit.any():
             return None
+        # Lit from the camera: brightest where the surface faces the viewer. The normal's
+        # cosine to the ray is sqrt(disc) / (2 r sqrt(a) |d|) for this quadratic.
+        with np.errstate(invalid="ignore", divide="ignore"):
+            facing = root / (2.0 * rod.radius * np.sqrt(a * (x * x + y * y + 1.0)))
+        val = np.where(hit, rod.level * (0.55 + 0.45 * np.clip(facing, 0, 1)), 0.0)
+        val = val.astype(np.float32)
+        alpha = hit.astype(np.float32)
         if s > 1:
             size = (x1 - x0, y1 - y0)
             val = cv2.resize(val, size, interpolation=cv2.INTER_AREA)
             alpha = cv2.resize(alpha, size, interpolation=cv2.INTER_AREA)
-        depth = float(0.5 * (p0[2] + p1[2]))
-        return _Patch(x0, y0, val, alpha, depth, owner)
+        mid = p0 + 0.5 * (f0 + f1) * axis
+        return _Patch(x0, y0, val, alpha, float(mid[2]), owner)

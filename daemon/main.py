@@ -1,0 +1,134 @@
+"""``oralnavd``: the navigation and control daemon.
+
+For now (foundation issue) it loads and validates the configuration and every file it
+names, and, with ``--demo`` on the simulated cell, renders what the stereo camera and the
+endoscope see and checks OpenCV's stock ChArUco detector against the ground truth. The
+anyio task graph, drivers, control loop, safety and REST API arrive with the daemon issue.
+
+    oralnavd [--config FILE] [--check] [--demo] [--api-port N] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from oralnav import __version__
+from oralnav.config.daemon import DaemonConfig, load_config
+from oralnav.config.errors import ConfigError
+from oralnav.control.errors import ControlError
+
+
+def _log(msg: str) -> None:
+    print(f"oralnavd: {msg}", file=sys.stderr, flush=True)
+
+
+def detection_report(image: np.ndarray, field, truth) -> dict[str, Any]:
+    """Run OpenCV's ChArUco detector + cornerSubPix on ``image`` for ``field`` and compare
+    the corners with the renderer's ground truth (pixels)."""
+    detector = cv2.aruco.CharucoDetector(field.board)
+    corners, ids, _, _ = detector.detectBoard(image)
+    if ids is None or len(ids) == 0:
+        return {"truth": len(truth.corner_ids), "found": 0}
+    pts = cv2.cornerSubPix(image, corners.astype(np.float32), (4, 4), (-1, -1),
+                           (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4))
+    index = {int(c): k for k, c in enumerate(truth.corner_ids)}
+    errs = [float(np.linalg.norm(p - truth.corners_px[index[int(i)]]))
+            for p, i in zip(pts.reshape(-1, 2), ids.ravel(), strict=True) if int(i) in index]
+    wrong = int(sum(int(i) not in index for i in ids.ravel()))
+    return {"truth": len(truth.corner_ids), "found": len(errs), "wrong_ids": wrong,
+            "mean_err_px": round(float(np.mean(errs)), 4) if errs else None,
+            "max_err_px": round(float(np.max(errs)), 4) if errs else None}
+
+
+def demo(cfg: DaemonConfig) -> dict[str, Any]:
+    """Render the simulated cell's views and report detection against ground truth."""
+    from oralnav.config.scene import load_scene
+    from oralnav.sim.render import SceneRenderer
+
+    scenes = [cfg.scene_path]
+    endo = cfg.scene_path.parent / "endoscope_view.toml" if cfg.scene_path else None
+    if endo is not None and endo.is_file() and cfg.endoscope_rig is not None:
+        scenes.append(endo)
+    report: dict[str, Any] = {}
+    for path in scenes:
+        scene = load_scene(path)
+        renderer = SceneRenderer(scene)
+        _log(f"preparing {Path(path).name} (camera ray maps, textures)...")
+        renderer.prepare()
+        frame = renderer.render()
+        for cam, img in frame.images.items():
+            entry = {"render_ms": round(frame.render_s[cam] * 1e3, 1), "fields": {}}
+            for name, truth in frame.truth[cam].items():
+                field = scene.placement(name).field
+                entry["fields"][name] = detection_report(img, field, truth)
+            report[cam] = entry
+            _log(f"{cam}: rendered in {entry['render_ms']} ms")
+    return report
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="oralnavd", description="oralnav navigation daemon")
+    p.add_argument("--version", action="version", version=f"oralnavd {__version__}")
+    p.add_argument("--config", help="configuration TOML (default: the embedded sim.toml)")
+    p.add_argument("--check", action="store_true", help="validate the configuration and exit")
+    p.add_argument("--demo", action="store_true",
+                   help="simulated cell: render the views and check detection against truth")
+    p.add_argument("--api-port", type=int, help="override [api] port")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    return p
+
+
+def run(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        cfg = load_config(args.config)
+        if args.api_port is not None and not 1 <= args.api_port <= 65535:
+            raise ConfigError("--api-port", "", f"must be 1..65535, got {args.api_port}")
+    except (ConfigError, ControlError) as exc:
+        print(f"oralnavd: error: {exc}", file=sys.stderr)
+        if args.json:
+            print(json.dumps({"error": str(exc), "exit": 2}))
+        return 2
+    s = cfg.settings
+    port = args.api_port or s.api.port
+    _log(f"configuration {cfg.path} is valid: {s.cell.backend} cell, "
+         f"cameras {', '.join(cfg.rig.names)}, fields {', '.join(sorted(cfg.fields))}, "
+         f"control at {s.control.rate_hz:g} Hz, API on {s.api.host}:{port}")
+    doc: dict[str, Any] = {"config": str(cfg.path), "valid": True, "backend": s.cell.backend,
+                           "api": {"host": s.api.host, "port": port}}
+    if args.demo:
+        if s.cell.backend != "sim":
+            _log("--demo needs the sim backend")
+            return 2
+        t0 = time.perf_counter()
+        doc["demo"] = demo(cfg)
+        doc["demo_s"] = round(time.perf_counter() - t0, 2)
+    if args.json:
+        print(json.dumps(doc))
+    elif "demo" in doc:
+        print(f"simulated cell ({cfg.path.name}): OpenCV ChArUco detection against ground truth")
+        for cam, e in doc["demo"].items():
+            print(f"  {cam} (render {e['render_ms']} ms)")
+            for name, r in e["fields"].items():
+                err = (f"mean {r['mean_err_px']} px, max {r['max_err_px']} px"
+                       if r.get("mean_err_px") is not None else "no corners")
+                print(f"    {name:9s} {r['found']:3d}/{r['truth']:3d} corners, {err}")
+        print("the daemon proper (task graph, control loop, REST API) is not built yet; "
+              "see docs/architecture.md")
+    elif not args.check:
+        _log("the daemon proper is not built yet (foundation issue): configuration checked, "
+             "exiting")
+    return 0
+
+
+def main() -> None:
+    sys.exit(run())

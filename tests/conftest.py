@@ -1,0 +1,42 @@
+"""Suite-wide fixtures: no test may leave threads or asyncio tasks behind."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+
+import pytest
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_threads():
+    """Fail a test that leaves a thread running (drivers must close what they start)."""
+    before = set(threading.enumerate())
+    yield
+    deadline = time.monotonic() + 1.0
+    while True:
+        leaked = [t for t in threading.enumerate() if t not in before and t.is_alive()]
+        if not leaked or time.monotonic() > deadline:
+            break
+        time.sleep(0.01)
+    assert not leaked, f"test left threads running: {[t.name for t in leaked]}"
+
+
+@pytest.fixture
+async def no_leaked_tasks():
+    """Fail an async test that leaves asyncio tasks pending on its loop."""
+    yield
+    current = asyncio.current_task()
+    for _ in range(5):  # let tasks that are finishing finish
+        pending = [t for t in asyncio.all_tasks() if t is not current and not t.done()]
+        if not pending:
+            break
+        await asyncio.sleep(0.01)
+    assert not pending, f"test left asyncio tasks pending: {pending}"
+
+
+def pytest_collection_modifyitems(items):
+    for item in items:
+        if item.get_closest_marker("asyncio") and "no_leaked_tasks" not in item.fixturenames:
+            item.fixturenames.append("no_leaked_tasks")
