@@ -108,7 +108,7 @@ def cmd_markers_print(args: argparse.Namespace) -> int:
     fld = fields[args.field]
     sheet = render_sheet(fld, args.dpi, label=not args.no_label)
     write_png(args.out, sheet.image, args.dpi)
-    w_mm, h_mm = (v * 1e3 for v in fld.sheet_size)
+    w_mm, h_mm = (round(v * 1e3, 6) for v in fld.sheet_size)
     doc = {"field": fld.name, "out": str(args.out), "dpi": args.dpi,
            "image_px": [int(sheet.image.shape[1]), int(sheet.image.shape[0])],
            "board_mm": [w_mm, h_mm], "board_origin_px": list(sheet.board_origin_px),

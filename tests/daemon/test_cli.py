@@ -1,0 +1,116 @@
+"""Command-line tools: `oralnav sim render`, `oralnav markers print`, `oralnav config
+check` and the `oralnavd` stub, run in-process through their entry functions."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+
+from oralnav.daemon import cli, main
+from oralnav.daemon.sheets import read_png_dpi
+
+ROOT = Path(__file__).resolve().parents[2]
+ENDO_SCENE = ROOT / "config" / "examples" / "endoscope_view.toml"
+
+
+def _one_json(capsys) -> dict:
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1, out
+    return json.loads(out[0])
+
+
+def test_sim_render_writes_pngs_and_truth(tmp_path, capsys):
+    """Issue 2 item 7: `oralnav sim render SCENE --out DIR` writes one PNG per camera and
+    truth.json; --json prints exactly one JSON object."""
+    assert cli.run(["sim", "render", str(ENDO_SCENE), "--out", str(tmp_path), "--json"]) == 0
+    doc = _one_json(capsys)
+    assert doc["frames"][0]["visible_corners"]["endoscope"]["effector"] > 10
+    img = cv2.imread(str(tmp_path / "endoscope.png"), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (1080, 1920)
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    cam = truth["cameras"]["endoscope"]
+    assert cam["image"] == "endoscope.png" and cam["size"] == [1920, 1080]
+    eff = cam["fields"]["effector"]
+    assert len(eff["corner_ids"]) == len(eff["corners_px"]) == len(eff["obliquity_deg"])
+    assert truth["reference"] == "endoscope"
+
+
+def test_sim_render_frames_are_reproducible(tmp_path, capsys):
+    """Issue 2 item 7: same scene + seed gives the same bytes, across runs of the tool."""
+    for out in ("a", "b"):
+        assert cli.run(["sim", "render", str(ENDO_SCENE), "--out", str(tmp_path / out),
+                        "--frames", "2", "--seed", "11"]) == 0
+    capsys.readouterr()
+    for k in range(2):
+        a = (tmp_path / "a" / f"frame_{k:04d}" / "endoscope.png").read_bytes()
+        b = (tmp_path / "b" / f"frame_{k:04d}" / "endoscope.png").read_bytes()
+        assert a == b
+    assert (tmp_path / "a" / "frame_0000" / "endoscope.png").read_bytes() != \
+        (tmp_path / "a" / "frame_0001" / "endoscope.png").read_bytes()
+
+
+def test_sim_render_bad_scene_names_file_and_key(tmp_path, capsys):
+    """Issue 2 bad input: a malformed scene gets one clear error naming file and key, exit
+    status 2, and nothing is written."""
+    bad = tmp_path / "bad.toml"
+    bad.write_text(ENDO_SCENE.read_text().replace('rig = "../rigs/endoscope.toml"',
+                                                  f'rig = "{ROOT}/config/rigs/endoscope.toml"')
+                   .replace('fields = "../fields/cell.toml"',
+                            f'fields = "{ROOT}/config/fields/cell.toml"')
+                   .replace("blur_sigma_px = 1.2", "blur_sigma_px = -1.0"))
+    out = tmp_path / "out"
+    assert cli.run(["sim", "render", str(bad), "--out", str(out), "--json"]) == 2
+    captured = capsys.readouterr()
+    err = json.loads(captured.out)["error"]
+    assert "bad.toml" in err and "[imaging] blur_sigma_px" in err
+    assert not out.exists()
+
+
+def test_markers_print_writes_true_scale_png(tmp_path, capsys):
+    """Issue 2 item 6: `oralnav markers print FIELD --dpi N --out F.png` writes a sheet
+    whose PNG carries the dpi, with the board at true scale."""
+    out = tmp_path / "opener.png"
+    assert cli.run(["markers", "print", "opener", "--dpi", "600", "--out", str(out),
+                    "--json"]) == 0
+    doc = _one_json(capsys)
+    assert doc["board_mm"] == [36.0, 27.0]
+    assert abs(read_png_dpi(out) - 600) < 0.01
+    img = cv2.imread(str(out), cv2.IMREAD_GRAYSCALE)
+    assert img.shape[1] == doc["image_px"][0]
+    # the board spans 36 mm = 850.4 px at 600 dpi: a dark run starts at its origin
+    x0, y0 = doc["board_origin_px"]
+    assert img[y0 + 5, x0 + 5] < 128  # top-left square is black
+    assert cli.run(["markers", "print", "nosuch", "--dpi", "600", "--out", str(out)]) == 2
+    assert "no field 'nosuch'" in capsys.readouterr().err
+
+
+def test_config_check_reports_errors_with_file_and_key(tmp_path, capsys):
+    """Issue 2 item 3: `oralnav config check` validates a configuration; a broken one is
+    refused naming file, section and key."""
+    assert cli.run(["config", "check", "--json"]) == 0
+    doc = _one_json(capsys)
+    assert doc["backend"] == "sim" and set(doc["fields"]) == {"robot", "effector", "opener"}
+    bad = tmp_path / "cfg.toml"
+    bad.write_text((ROOT / "config" / "sim.toml").read_text()
+                   .replace('rig = "rigs/', f'rig = "{ROOT}/config/rigs/')
+                   .replace("max_speed = 0.25", "max_speed = 0.3"))
+    assert cli.run(["config", "check", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "cfg.toml" in err and "[safety] max_speed" in err
+
+
+def test_oralnavd_check_and_bad_config(tmp_path, capsys):
+    """Issue 2 item 1: `oralnavd` loads and validates its configuration (the embedded
+    simulation default, or --config FILE) and refuses a broken one before starting."""
+    assert main.run(["--check", "--json"]) == 0
+    doc = _one_json(capsys)
+    assert doc["valid"] and doc["api"]["port"] == 8750
+    assert main.run(["--check", "--api-port", "9100", "--json"]) == 0
+    assert _one_json(capsys)["api"]["port"] == 9100
+    bad = tmp_path / "d.toml"
+    bad.write_text("[cell]\nbackend = 'sim'\nrig = 'x.toml'\nfields = 'y.toml'\nbogus = 1\n")
+    assert main.run(["--config", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "d.toml" in err and "bogus" in err and "unknown key" in err
