@@ -90,7 +90,7 @@ def validate(model: type[M], data: Mapping[str, Any], path: str | Path, prefix: 
                 msg = str(e.get("ctx", {}).get("error", msg))
             if e["type"] == "extra_forbidden":
                 msg = "unknown key (check its spelling and section)"
-            elif "input" in e and e["type"] not in {"missing"} and not isinstance(
+            elif e.get("input") is not None and e["type"] != "missing" and not isinstance(
                     e["input"], dict | list):
                 msg = f"{msg} (got {e['input']!r})"
             lines.append((key, msg))

@@ -29,6 +29,7 @@ from oralnav.config.fields import load_fields
 from oralnav.config.loader import atomic_write_bytes, atomic_write_text
 from oralnav.config.scene import load_scene
 from oralnav.control.errors import ControlError
+from oralnav.sim.render import RenderError, SceneRenderer
 
 from .sheets import SheetError, render_sheet, write_png
 
@@ -55,7 +56,6 @@ def _emit(args: argparse.Namespace, doc: dict[str, Any], text: str) -> None:
 
 # -- oralnav sim render ---------------------------------------------------------------
 def cmd_sim_render(args: argparse.Namespace) -> int:
-    from oralnav.sim.render import SceneRenderer
 
     scene = load_scene(args.scene)
     if args.seed is not None:
@@ -172,7 +172,8 @@ def run(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ConfigError, ControlError, SheetError, UsageError, FileNotFoundError) as exc:
+    except (ConfigError, ControlError, RenderError, SheetError, UsageError,
+            FileNotFoundError) as exc:
         _fail(args, str(exc), 2)
         return 2
     except (OSError, RuntimeError, ValueError) as exc:

@@ -238,8 +238,10 @@ class SceneRenderer:
                  for p in self.scene.placements}
         images, truth, times = {}, {}, {}
         names = cameras or tuple(self.scene.rig.names)
-        for ci, cam_name in enumerate(names):
+        for cam_name in names:
             t0 = time.perf_counter()
+            # the noise draw belongs to the camera, whichever cameras this call renders
+            ci = self.scene.rig.names.index(self.scene.rig[cam_name].name)
             img, tr = self._render_camera(cam_name, T_ref, frame, ci)
             images[cam_name], truth[cam_name] = img, tr
             times[cam_name] = time.perf_counter() - t0
@@ -276,8 +278,8 @@ class SceneRenderer:
             self._blur(signal, patches, im.blur_sigma_px)
         if im.noisy:
             self._add_noise(signal, frame, cam_index)
-        image = np.empty(signal.shape, np.uint8)
-        cv2.convertScaleAbs(signal, image)  # rounds and saturates to 0..255
+        np.maximum(signal, 0.0, out=signal)  # convertScaleAbs would mirror negatives
+        image = cv2.convertScaleAbs(signal)  # rounds and saturates to 0..255
         truth = {}
         for k, pl in enumerate(self.scene.placements):
             tr = self._field_truth(cam, pl, T_cam_ref @ T_ref[pl.name], owner, k + 1)
@@ -298,7 +300,8 @@ class SceneRenderer:
 
     def _add_noise(self, signal: np.ndarray, frame: int, cam_index: int) -> None:
         im = self.scene.imaging
-        seq = np.random.SeedSequence([self.scene.seed & 0xFFFFFFFF, frame, cam_index])
+        seed = self.scene.seed
+        seq = np.random.SeedSequence([seed & 0xFFFFFFFF, seed >> 32, frame, cam_index])
         cv2.setRNGSeed(int(seq.generate_state(1)[0] & 0x7FFFFFFF))
         noise = np.empty_like(signal)
         cv2.randn(noise, 0.0, 1.0)
