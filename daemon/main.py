@@ -54,15 +54,14 @@ def demo(cfg: DaemonConfig) -> dict[str, Any]:
     from oralnav.config.scene import load_scene
     from oralnav.sim.render import SceneRenderer
 
-    scenes = [cfg.scene_path]
+    scenes = [cfg.scene]  # loaded and validated with the configuration
     endo = cfg.scene_path.parent / "endoscope_view.toml" if cfg.scene_path else None
     if endo is not None and endo.is_file() and cfg.endoscope_rig is not None:
-        scenes.append(endo)
+        scenes.append(load_scene(endo))
     report: dict[str, Any] = {}
-    for path in scenes:
-        scene = load_scene(path)
+    for scene in scenes:
         renderer = SceneRenderer(scene)
-        _log(f"preparing {Path(path).name} (camera ray maps, textures)...")
+        _log(f"preparing {Path(scene.source).name} (camera ray maps, textures)...")
         renderer.prepare()
         frame = renderer.render()
         for cam, img in frame.images.items():

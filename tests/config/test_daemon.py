@@ -1,0 +1,237 @@
+"""Tests of ``oralnav.config.daemon``: the daemon configuration and the shipped defaults.
+
+Each test's docstring names the requirement it checks (Issue 2: configuration).
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+
+from oralnav.config.daemon import (
+    ISO_REDUCED_SPEED,
+    DaemonConfig,
+    default_config_path,
+    load_config,
+)
+from oralnav.config.errors import ConfigError
+
+CONFIG = Path(__file__).resolve().parents[2] / "config"
+SIM = CONFIG / "sim.toml"
+HARDWARE = CONFIG / "hardware.example.toml"
+
+GOOD = f"""\
+name = "test-cell"
+
+[cell]
+backend = "sim"
+rig = "{CONFIG}/rigs/stereo.toml"
+endoscope_rig = "{CONFIG}/rigs/endoscope.toml"
+fields = "{CONFIG}/fields/cell.toml"
+scene = "{CONFIG}/examples/stereo_cell.toml"
+
+[control]
+rate_hz = 500.0
+
+[safety]
+max_speed = 0.25
+near_patient_speed = 0.05
+stale_pose = 0.1
+
+[api]
+host = "127.0.0.1"
+port = 8750
+"""
+
+
+def _edit(old: str, new: str, text: str = GOOD) -> str:
+    assert old in text, old
+    return text.replace(old, new, 1)
+
+
+def _write(folder: Path, name: str, text: str) -> Path:
+    path = folder / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
+
+
+def _expect(path: Path, where: str, *reasons: str) -> str:
+    threads = set(threading.enumerate())
+    with pytest.raises(ConfigError) as ei:
+        load_config(path)
+    msg = str(ei.value)
+    assert msg.startswith(f"{path}: "), msg
+    assert where in msg, msg
+    for r in reasons:
+        assert r in msg, msg
+    assert "\n" not in msg, f"one error expected, got several: {msg}"
+    assert set(threading.enumerate()) == threads  # nothing was started
+    return msg
+
+
+# -- shipped files -------------------------------------------------------------------------
+def test_default_config_is_the_embedded_sim_toml():
+    """Issue 2 (every shipped file loads): load_config() with no path loads the embedded
+    simulation default, config/sim.toml, and every file it names."""
+    cfg = load_config()
+    assert isinstance(cfg, DaemonConfig)
+    assert cfg.path == default_config_path()
+    assert cfg.path.name == "sim.toml"
+    assert cfg.path.read_bytes() == SIM.read_bytes()
+    s = cfg.settings
+    assert s.name == "oralnav-sim" and s.cell.backend == "sim"
+    assert cfg.rig.names == ("left", "right")
+    assert cfg.endoscope_rig is not None and cfg.endoscope_rig.names == ("endoscope",)
+    assert sorted(cfg.fields) == ["effector", "opener", "robot"]
+    assert cfg.scene_path is not None and cfg.scene_path.name == "stereo_cell.toml"
+    assert cfg.scene is not None and cfg.scene.source == str(cfg.scene_path)
+    assert s.safety.max_speed <= ISO_REDUCED_SPEED
+    assert s.safety.near_patient_speed <= s.safety.max_speed
+    assert (s.api.host, s.api.port, s.control.rate_hz) == ("127.0.0.1", 8750, 500.0)
+
+
+def test_hardware_template_loads_from_any_cwd(tmp_path, monkeypatch):
+    """Issue 2 (every shipped file loads): config/hardware.example.toml loads, its paths
+    resolved against its own folder whatever the working directory."""
+    monkeypatch.chdir(tmp_path)
+    cfg = load_config(HARDWARE)
+    s = cfg.settings
+    assert s.cell.backend == "hardware" and s.cell.scene is None
+    assert cfg.scene_path is None and cfg.scene is None
+    assert cfg.rig.names == ("left", "right") and cfg.endoscope_rig is not None
+    assert (s.safety.max_speed, s.safety.near_patient_speed) == (0.20, 0.03)
+
+
+def test_relative_config_path_from_repository_cwd(monkeypatch):
+    """Issue 2 (every shipped file loads): load_config("config/hardware.example.toml") as the
+    issue writes it works from the repository root."""
+    monkeypatch.chdir(CONFIG.parent)
+    cfg = load_config("config/hardware.example.toml")
+    assert cfg.settings.cell.backend == "hardware"
+
+
+def test_settings_are_frozen():
+    """Issue 2 (configuration): validated once at start, then frozen."""
+    cfg = load_config()
+    with pytest.raises(ValidationError, match="frozen"):
+        cfg.settings.safety.max_speed = 1.0
+    with pytest.raises(AttributeError):
+        cfg.rig = None
+
+
+def test_good_config_template_loads_with_defaults(tmp_path):
+    """Issue 2 (bad input tests are meaningful): the template the broken cases edit loads;
+    omitted sections take their defaults."""
+    cfg = load_config(_write(tmp_path, "c.toml", GOOD))
+    assert cfg.settings.name == "test-cell"
+    text = GOOD.split("[control]")[0]
+    cfg = load_config(_write(tmp_path, "bare.toml", text))
+    s = cfg.settings
+    assert (s.control.rate_hz, s.safety.max_speed, s.safety.near_patient_speed,
+            s.api.port) == (500.0, 0.25, 0.05, 8750)
+
+
+@pytest.mark.parametrize("speed", ["0.25", "0.05"])
+def test_speed_bounds_are_inclusive(tmp_path, speed):
+    """Issue 2 (safety bounds): max_speed may equal the ISO 10218 reduced speed and
+    near_patient_speed may equal max_speed."""
+    text = _edit("max_speed = 0.25", f"max_speed = {speed}")
+    cfg = load_config(_write(tmp_path, "c.toml", text))
+    assert cfg.settings.safety.max_speed == float(speed)
+    assert cfg.settings.safety.near_patient_speed == 0.05
+
+
+def test_hardware_backend_needs_no_scene(tmp_path):
+    """Issue 2 (configuration): only the sim backend needs a scene."""
+    text = _edit('backend = "sim"', 'backend = "hardware"')
+    text = _edit(f'scene = "{CONFIG}/examples/stereo_cell.toml"\n', "", text)
+    assert load_config(_write(tmp_path, "c.toml", text)).scene_path is None
+
+
+# -- bad input -----------------------------------------------------------------------------
+BROKEN = {
+    # name: (file text, expected "[section] key" text, expected reason texts)
+    "max_speed_above_iso": (_edit("max_speed = 0.25", "max_speed = 0.3"),
+                            "[safety] max_speed:", ("exceeds the ISO 10218 reduced speed",
+                                                    "0.25 m/s")),
+    "near_speed_above_iso": (_edit("near_patient_speed = 0.05", "near_patient_speed = 0.26"),
+                             "[safety] near_patient_speed:", ("ISO 10218",)),
+    "near_above_max": (_edit("max_speed = 0.25", "max_speed = 0.04"),
+                       "[safety] near_patient_speed:", ("must not exceed max_speed",)),
+    "max_speed_zero": (_edit("max_speed = 0.25", "max_speed = 0.0"), "[safety] max_speed:",
+                       ("greater than 0",)),
+    "max_speed_string": (_edit("max_speed = 0.25", 'max_speed = "0.2"'),
+                         "[safety] max_speed:", ("valid number",)),
+    "stale_pose_bound": (_edit("stale_pose = 0.1", "stale_pose = 2.0"),
+                         "[safety] stale_pose:", ("less than or equal to 1",)),
+    "sim_without_scene": (_edit(f'scene = "{CONFIG}/examples/stereo_cell.toml"\n', ""),
+                          "[cell] scene:", ("sim backend needs scene",)),
+    "backend_unknown": (_edit('backend = "sim"', 'backend = "real"'), "[cell] backend:",
+                        ("'sim' or 'hardware'",)),
+    "missing_rig": (_edit(f'rig = "{CONFIG}/rigs/stereo.toml"\n', ""), "[cell] rig:",
+                    ("Field required",)),
+    "missing_cell": (GOOD.split("[cell]")[0], ": cell:", ("Field required",)),
+    "unknown_key": (_edit("stale_pose = 0.1", "stale_pose = 0.1\nmax_force = 5.0"),
+                    "[safety] max_force:", ("unknown key",)),
+    "unknown_section": (GOOD + "\n[arm]\nip = \"10.0.0.2\"\n", ": arm:", ("unknown key",)),
+    "port_string": (_edit("port = 8750", 'port = "8750"'), "[api] port:", ("valid integer",)),
+    "port_bound": (_edit("port = 8750", "port = 70000"), "[api] port:",
+                   ("less than or equal to 65535",)),
+    "rate_bound": (_edit("rate_hz = 500.0", "rate_hz = 5000.0"), "[control] rate_hz:",
+                   ("less than or equal to 1000",)),
+    "syntax": (_edit("[safety]", "[safety"), "not valid TOML", ("line 13",)),
+    "rig_file_missing": (_edit(f"{CONFIG}/rigs/stereo.toml", "rigs/none.toml"), "[cell] rig:",
+                         ("file not found", "none.toml")),
+    "endoscope_rig_missing": (_edit(f"{CONFIG}/rigs/endoscope.toml", "none.toml"),
+                              "[cell] endoscope_rig:", ("file not found",)),
+    "fields_file_missing": (_edit(f"{CONFIG}/fields/cell.toml", "none.toml"), "[cell] fields:",
+                            ("file not found",)),
+    "scene_file_missing": (_edit(f"{CONFIG}/examples/stereo_cell.toml", "none.toml"),
+                           "[cell] scene:", ("file not found",)),
+}
+
+
+@pytest.mark.parametrize("case", list(BROKEN))
+def test_broken_daemon_config_is_one_clear_error(tmp_path, case):
+    """Issue 2 (bad input): a broken daemon configuration (speeds above the ISO 10218
+    reduced speed of 0.25 m/s, near_patient_speed above max_speed, the sim backend without
+    a scene, wrong types, unknown keys, bounds, missing files) gives one ConfigError naming
+    the file, the section and key, and the reason, and starts nothing."""
+    text, where, reasons = BROKEN[case]
+    _expect(_write(tmp_path, f"{case}.toml", text), where, *reasons)
+
+
+def test_broken_scene_is_caught_at_start(tmp_path):
+    """Issue 2 (never half-starts): load_config validates the scene the sim backend will
+    render, so a broken scene fails the configuration check, naming the scene file and key,
+    before the daemon starts anything."""
+    scene = _write(tmp_path, "scene.toml", (CONFIG / "examples" / "stereo_cell.toml")
+                   .read_text().replace('field = "opener"', 'field = "jaw"')
+                   .replace('"../', f'"{CONFIG}/'))
+    path = _write(tmp_path, "c.toml", _edit(f"{CONFIG}/examples/stereo_cell.toml", str(scene)))
+    with pytest.raises(ConfigError) as ei:
+        load_config(path)
+    assert str(ei.value).startswith(f"{scene}: [placements.opener] field: unknown field 'jaw'")
+
+
+def test_broken_rig_is_reported_against_the_rig_file(tmp_path):
+    """Issue 2 (bad input): an error in the rig the configuration names is reported against
+    the rig file and its key."""
+    rig = _write(tmp_path, "rig.toml", (CONFIG / "rigs" / "stereo.toml").read_text()
+                 .replace("[[2395.0, 0.0,", "[[2395.0, 0.5,"))
+    path = _write(tmp_path, "c.toml", _edit(f"{CONFIG}/rigs/stereo.toml", str(rig)))
+    with pytest.raises(ConfigError) as ei:
+        load_config(path)
+    assert str(ei.value).startswith(f"{rig}: [cameras.right] K: ")
+    assert "no skew" in str(ei.value)
+
+
+def test_missing_config_file(tmp_path):
+    """Issue 2 (bad input): a missing configuration file is a ConfigError naming it."""
+    with pytest.raises(ConfigError) as ei:
+        load_config(tmp_path / "oralnav.toml")
+    assert str(ei.value) == f"{tmp_path / 'oralnav.toml'}: file not found"

@@ -1,0 +1,242 @@
+"""Tests of ``oralnav.config.scene``: the scene file the simulator renders.
+
+Only loading is tested here (no image is rendered). Each test's docstring names the
+requirement it checks (Issue 2: configuration).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from oralnav.config.errors import ConfigError
+from oralnav.config.scene import load_scene
+from oralnav.sim.scene import Scene
+
+CONFIG = Path(__file__).resolve().parents[2] / "config"
+EXAMPLES = sorted((CONFIG / "examples").glob("*.toml"))
+STEREO = CONFIG / "rigs" / "stereo.toml"
+CELL = CONFIG / "fields" / "cell.toml"
+
+GOOD = f"""\
+rig = "{STEREO}"
+fields = "{CELL}"
+seed = 4
+
+[imaging]
+supersample = 2
+blur_sigma_px = 0.5
+
+[placements.robot]
+field = "robot"
+translation = [-0.065, -0.045, 0.245]
+euler_xyz_deg = [10.0, -15.0, 3.0]
+
+[placements.opener]
+field = "opener"
+T_ref_field = [[1.0, 0.0, 0.0, 0.04], [0.0, 1.0, 0.0, -0.03],
+               [0.0, 0.0, 1.0, 0.215], [0.0, 0.0, 0.0, 1.0]]
+
+[rods.shaft]
+p0 = [0.010, -0.060, 0.170]
+p1 = [0.060, 0.010, 0.180]
+radius = 0.0015
+
+[blots.blood]
+placement = "robot"
+center = [0.020, 0.012]
+radius = 0.004
+"""
+
+
+def _edit(old: str, new: str, text: str = GOOD) -> str:
+    assert old in text, old
+    return text.replace(old, new, 1)
+
+
+def _write(folder: Path, name: str, text: str) -> Path:
+    path = folder / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
+
+
+def _expect(path: Path, where: str, *reasons: str) -> str:
+    with pytest.raises(ConfigError) as ei:
+        load_scene(path)
+    msg = str(ei.value)
+    assert msg.startswith(f"{path}: "), msg
+    assert where in msg, msg
+    for r in reasons:
+        assert r in msg, msg
+    assert "\n" not in msg, f"one error expected, got several: {msg}"
+    return msg
+
+
+# -- shipped examples ----------------------------------------------------------------------
+def test_examples_are_shipped():
+    """Issue 2 (every shipped file loads): the example scenes exist (guards the
+    parametrised test below against an empty glob)."""
+    assert {p.name for p in EXAMPLES} >= {"stereo_cell.toml", "stereo_occluded.toml",
+                                          "endoscope_view.toml"}
+
+
+@pytest.mark.parametrize("path", EXAMPLES, ids=[p.stem for p in EXAMPLES])
+def test_every_example_scene_loads(path, tmp_path, monkeypatch):
+    """Issue 2 (every shipped file loads): each config/examples/*.toml loads with
+    load_scene, from any working directory (its rig and fields paths are relative to it)."""
+    monkeypatch.chdir(tmp_path)
+    scene = load_scene(path)
+    assert isinstance(scene, Scene) and scene.source == str(path)
+    assert scene.placements
+    for p in scene.placements:
+        assert p.field.renderable
+        assert p.T_ref_field.shape == (4, 4)
+
+
+def test_stereo_cell_values():
+    """Issue 2 (scene format): stereo_cell.toml places its fields where the file says:
+    translation in metres, extrinsic x-y-z Euler angles in degrees, in the rig's reference
+    frame."""
+    scene = load_scene(CONFIG / "examples" / "stereo_cell.toml")
+    assert scene.rig.names == ("left", "right") and scene.seed == 1
+    assert [p.name for p in scene.placements] == ["robot", "effector", "opener"]
+    robot = scene.placement("robot")
+    assert robot.field.name == "robot"
+    np.testing.assert_array_equal(robot.T_ref_field[:3, 3], [-0.065, -0.045, 0.245])
+    expected = Rotation.from_euler("xyz", [10.0, -15.0, 3.0], degrees=True).as_matrix()
+    np.testing.assert_allclose(robot.T_ref_field[:3, :3], expected, atol=1e-15)
+    assert scene.imaging.blur_sigma_px == 1.0 and scene.imaging.illumination_gradient == (
+        0.15, -0.10)
+    assert scene.rods == () and scene.blots == ()
+
+
+def test_stereo_occluded_values():
+    """Issue 2 (scene format): stereo_occluded.toml has its rod, its blot on the robot
+    field, and the effector's velocities (m/s, and deg/s turned to rad/s)."""
+    scene = load_scene(CONFIG / "examples" / "stereo_occluded.toml")
+    (rod,) = scene.rods
+    assert rod.name == "shaft" and rod.radius == 0.0015 and rod.level == 110.0
+    np.testing.assert_array_equal(rod.p0, [0.010, -0.060, 0.170])
+    (blot,) = scene.blots
+    assert (blot.name, blot.placement, blot.center, blot.radius) == (
+        "blood", "robot", (0.020, 0.012), 0.004)
+    eff = scene.placement("effector")
+    np.testing.assert_array_equal(eff.velocity, [0.05, 0.0, 0.0])
+    np.testing.assert_allclose(eff.angular_velocity, [0.0, np.radians(20.0), 0.0])
+    assert scene.imaging.motion_samples == 8 and scene.imaging.exposure == 0.008
+
+
+def test_endoscope_view_uses_endoscope_rig():
+    """Issue 2 (scene format): endoscope_view.toml renders the effector through the
+    endoscope rig, whose own frame is the reference."""
+    scene = load_scene(CONFIG / "examples" / "endoscope_view.toml")
+    assert scene.rig.reference == "endoscope" and scene.rig.names == ("endoscope",)
+    assert [p.name for p in scene.placements] == ["effector"]
+
+
+def test_good_scene_template_loads(tmp_path):
+    """Issue 2 (bad input tests are meaningful): the template the broken cases edit loads,
+    with defaults for what it leaves out."""
+    scene = load_scene(_write(tmp_path, "s.toml", GOOD))
+    opener = scene.placement("opener")
+    np.testing.assert_array_equal(opener.T_ref_field[:3, 3], [0.04, -0.03, 0.215])
+    assert scene.seed == 4 and scene.imaging.blur_sigma_px == 0.5
+    assert scene.imaging.white == 220.0  # default
+    assert scene.blots[0].level == 60.0 and scene.rods[0].level == 90.0  # defaults
+    np.testing.assert_array_equal(opener.velocity, np.zeros(3))
+
+
+# -- bad input -----------------------------------------------------------------------------
+BROKEN = {
+    # name: (file text, expected "[section] key" text, expected reason texts)
+    "syntax": (_edit('field = "robot"', "field = robot"), "not valid TOML", ("line 10",)),
+    "unknown_key": (_edit("blur_sigma_px = 0.5", "blur_sigma = 0.5"), "[imaging] blur_sigma:",
+                    ("unknown key",)),
+    "unknown_section": (GOOD + "\n[lights.key]\nlevel = 3.0\n", ": lights:", ("unknown key",)),
+    "missing_rig": (_edit(f'rig = "{STEREO}"\n', ""), ": rig:", ("Field required",)),
+    "no_placements": (GOOD.split("[placements.robot]")[0], ": placements:",
+                      ("Field required",)),
+    "supersample_bound": (_edit("supersample = 2", "supersample = 5"),
+                          "[imaging] supersample:", ("less than or equal to 4",)),
+    "seed_negative": (_edit("seed = 4", "seed = -1"), ": seed:", ("greater than or equal",)),
+    "translation_string": (_edit("[-0.065, -0.045, 0.245]", '["-0.065", -0.045, 0.245]'),
+                           "[placements.robot] translation[0]:", ("valid number",)),
+    "translation_two": (_edit("[-0.065, -0.045, 0.245]", "[-0.065, -0.045]"),
+                        "[placements.robot] translation[2]:", ("Field required",)),
+    "unknown_field": (_edit('field = "opener"', 'field = "jaw"'),
+                      "[placements.opener] field:",
+                      ("unknown field 'jaw'", "['effector', 'opener', 'robot']")),
+    "unknown_placement": (_edit('placement = "robot"', 'placement = "robt"'),
+                          "[blots.blood] placement:",
+                          ("unknown placement 'robt'", "['opener', 'robot']")),
+    "T_not_rotation": (_edit("[[1.0, 0.0, 0.0, 0.04]", "[[1.1, 0.0, 0.0, 0.04]"),
+                       "[placements.opener] T_ref_field:", ("not a proper rotation",)),
+    "T_nan": (_edit("[[1.0, 0.0, 0.0, 0.04]", "[[nan, 0.0, 0.0, 0.04]"),
+              "[placements.opener] T_ref_field[0][0]:", ("finite",)),
+    "both_poses": (_edit("translation = [-0.065", "T_ref_field = [[1.0, 0.0, 0.0, 0.0], "
+                         "[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]\n"
+                         "translation = [-0.065"),
+                   "[placements] robot:", ("either as T_ref_field", "not both or neither")),
+    "no_pose": (_edit("translation = [-0.065, -0.045, 0.245]\neuler_xyz_deg = [10.0, -15.0, "
+                      "3.0]\n", ""), "[placements] robot:", ("not both or neither",)),
+    "euler_without_translation": (
+        _edit("T_ref_field = [[1.0", 'euler_xyz_deg = [0.0, 0.0, 1.0]\nT_ref_field = [[1.0'),
+        "[placements] opener:", ("euler_xyz_deg needs translation",)),
+    "blot_radius_bound": (_edit("radius = 0.004", "radius = 0.0"), "[blots.blood] radius:",
+                          ("greater than 0",)),
+    "rig_file_missing": (_edit(f'rig = "{STEREO}"', 'rig = "no_rig.toml"'), ": rig:",
+                         ("file not found", "no_rig.toml")),
+    "fields_file_missing": (_edit(f'fields = "{CELL}"', 'fields = "nofields.toml"'),
+                            ": fields:", ("file not found", "nofields.toml")),
+}
+
+
+@pytest.mark.parametrize("case", list(BROKEN))
+def test_broken_scene_file_is_one_clear_error(tmp_path, case):
+    """Issue 2 (bad input): a malformed scene file (syntax error, unknown or missing keys,
+    wrong types, bounds, a placement naming an unknown field, a blot naming an unknown
+    placement, a pose that is not rigid, a missing rig or fields file) gives one
+    ConfigError naming the file, the section and key, and the reason."""
+    text, where, reasons = BROKEN[case]
+    _expect(_write(tmp_path, f"{case}.toml", text), where, *reasons)
+
+
+def test_broken_rig_named_by_scene_names_the_rig_file(tmp_path):
+    """Issue 2 (bad input): an error inside the rig a scene names is reported against the
+    rig file and its key, not against the scene."""
+    rig = _write(tmp_path, "rig.toml", STEREO.read_text().replace("size = [1920, 1200]",
+                                                                   "size = [1920]", 1))
+    path = _write(tmp_path, "s.toml", _edit(f'rig = "{STEREO}"', 'rig = "rig.toml"'))
+    with pytest.raises(ConfigError) as ei:
+        load_scene(path)
+    assert str(ei.value).startswith(f"{rig}: [cameras.left] size")
+
+
+def test_broken_fields_named_by_scene_names_the_fields_file(tmp_path):
+    """Issue 2 (bad input): an error inside the fields file a scene names is reported
+    against that fields file and its key."""
+    fields = _write(tmp_path, "f.toml", CELL.read_text().replace("first_id = 100",
+                                                                  "first_id = 20"))
+    path = _write(tmp_path, "s.toml", _edit(f'fields = "{CELL}"', 'fields = "f.toml"'))
+    with pytest.raises(ConfigError) as ei:
+        load_scene(path)
+    assert str(ei.value).startswith(f"{fields}: [fields.effector] first_id:")
+    assert "must not share ids" in str(ei.value)
+
+
+def test_points_field_cannot_be_placed(tmp_path):
+    """Issue 2 (bad input): placing a points-surface field, which the simulator cannot
+    render, names the placement's field key and why."""
+    _write(tmp_path, "jaw.csv", "corner_id,x,y,z\n0,0,0,0\n1,1e-3,0,0\n2,0,1e-3,0\n"
+                                "3,1e-3,1e-3,0\n")
+    _write(tmp_path, "f.toml", '[fields.jaw]\ndictionary = "DICT_4X4_50"\nsquares = [4, 3]\n'
+                               'square = 0.004\nmarker = 0.003\n[fields.jaw.surface]\n'
+                               'kind = "points"\nfile = "jaw.csv"\n')
+    path = _write(tmp_path, "s.toml", f'rig = "{STEREO}"\nfields = "f.toml"\n'
+                                      '[placements.jaw]\nfield = "jaw"\n'
+                                      'translation = [0.0, 0.0, 0.2]\n')
+    _expect(path, "[placements.jaw] field:", "points surface", "cannot render")
