@@ -5,7 +5,7 @@ Each test's docstring names the requirement it checks (Issue 2: configuration).
 
 from __future__ import annotations
 
-import threading
+from functools import partial
 from pathlib import Path
 
 import pytest
@@ -18,6 +18,8 @@ from oralnav.config.daemon import (
     load_config,
 )
 from oralnav.config.errors import ConfigError
+
+from .helpers import edit, expect_config_error, write_file
 
 CONFIG = Path(__file__).resolve().parents[2] / "config"
 SIM = CONFIG / "sim.toml"
@@ -48,29 +50,11 @@ port = 8750
 
 
 def _edit(old: str, new: str, text: str = GOOD) -> str:
-    assert old in text, old
-    return text.replace(old, new, 1)
+    return edit(old, new, text)
 
 
-def _write(folder: Path, name: str, text: str) -> Path:
-    path = folder / name
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
-    return path
-
-
-def _expect(path: Path, where: str, *reasons: str) -> str:
-    threads = set(threading.enumerate())
-    with pytest.raises(ConfigError) as ei:
-        load_config(path)
-    msg = str(ei.value)
-    assert msg.startswith(f"{path}: "), msg
-    assert where in msg, msg
-    for r in reasons:
-        assert r in msg, msg
-    assert "\n" not in msg, f"one error expected, got several: {msg}"
-    assert set(threading.enumerate()) == threads  # nothing was started
-    return msg
+_write = write_file
+_expect = partial(expect_config_error, load_config)
 
 
 # -- shipped files -------------------------------------------------------------------------

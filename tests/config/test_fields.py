@@ -5,6 +5,7 @@ Each test's docstring names the requirement it checks (Issue 2: configuration).
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,8 @@ import pytest
 from oralnav.config.errors import ConfigError
 from oralnav.config.fields import load_fields
 from oralnav.control.markers import CylinderSurface, PlaneSurface, PointsSurface
+
+from .helpers import edit, expect_config_error, write_file
 
 CONFIG = Path(__file__).resolve().parents[2] / "config"
 CELL = CONFIG / "fields" / "cell.toml"
@@ -52,27 +55,11 @@ file = "{file}"
 
 
 def _edit(old: str, new: str, text: str = ONE) -> str:
-    assert old in text, old
-    return text.replace(old, new, 1)
+    return edit(old, new, text)
 
 
-def _write(folder: Path, name: str, text: str) -> Path:
-    path = folder / name
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
-    return path
-
-
-def _expect(path: Path, where: str, *reasons: str) -> str:
-    with pytest.raises(ConfigError) as ei:
-        load_fields(path)
-    msg = str(ei.value)
-    assert msg.startswith(f"{path}: "), msg
-    assert where in msg, msg
-    for r in reasons:
-        assert r in msg, msg
-    assert "\n" not in msg, f"one error expected, got several: {msg}"
-    return msg
+_write = write_file
+_expect = partial(expect_config_error, load_fields)
 
 
 # corner table of a 4x3 board (6 corners, ids 0..5): a gently bent sheet

@@ -6,6 +6,7 @@ requirement it checks (Issue 2: configuration).
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,8 @@ from scipy.spatial.transform import Rotation
 from oralnav.config.errors import ConfigError
 from oralnav.config.scene import load_scene
 from oralnav.sim.scene import Scene
+
+from .helpers import edit, expect_config_error, write_file
 
 CONFIG = Path(__file__).resolve().parents[2] / "config"
 EXAMPLES = sorted((CONFIG / "examples").glob("*.toml"))
@@ -53,27 +56,11 @@ radius = 0.004
 
 
 def _edit(old: str, new: str, text: str = GOOD) -> str:
-    assert old in text, old
-    return text.replace(old, new, 1)
+    return edit(old, new, text)
 
 
-def _write(folder: Path, name: str, text: str) -> Path:
-    path = folder / name
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
-    return path
-
-
-def _expect(path: Path, where: str, *reasons: str) -> str:
-    with pytest.raises(ConfigError) as ei:
-        load_scene(path)
-    msg = str(ei.value)
-    assert msg.startswith(f"{path}: "), msg
-    assert where in msg, msg
-    for r in reasons:
-        assert r in msg, msg
-    assert "\n" not in msg, f"one error expected, got several: {msg}"
-    return msg
+_write = write_file
+_expect = partial(expect_config_error, load_scene)
 
 
 # -- shipped examples ----------------------------------------------------------------------
