@@ -1,0 +1,171 @@
+"""Text files of scikit-surgery's ArUco tracker: rigid-body tag tables and calibrations.
+
+Rigid-body table (``reference.txt``, ``pointer.txt``, ``tag_0.txt``): one tag per line,
+columns separated by whitespace::
+
+    tag_id  centre_x centre_y centre_z  c0_x c0_y c0_z  c1_x ...  c3_x c3_y c3_z
+
+16 numbers, lengths in millimetres, corners in OpenCV's detection order (top-left,
+top-right, bottom-right, bottom-left). The centre is redundant, so it must be the mean of
+the corners: a mismatch means a shifted or mistyped column. As in the peer's loader, a
+13-column line (id and corners, no centre) is accepted too. Blank lines and ``#`` comments
+are skipped.
+
+Calibration (``calibration.txt``): three lines of the 3x3 intrinsic matrix K (pixels),
+then one line of OpenCV distortion coefficients (k1 k2 p1 p2 k3, or any length OpenCV
+accepts).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from oralnav.control.camera import DIST_LENGTHS, CameraModel
+from oralnav.control.errors import CameraModelError, MarkerFieldError
+from oralnav.control.markers import aruco_dictionary
+from oralnav.control.rigid_body import RigidBody, check_tag_corners
+
+from .errors import ConfigError
+
+#: Length units a table may be written in, as metres per unit.
+UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
+#: The centre may sit this far from the corners' mean: this fraction of the mean side ...
+CENTRE_TOL_REL = 1e-2
+#: ... or this many metres, whichever is larger (rounding in the file).
+CENTRE_TOL_ABS = 1e-6
+
+
+def _lines(path: Path) -> list[tuple[int, list[str]]]:
+    """Non-blank, comment-stripped lines of ``path`` as (line number, tokens)."""
+    try:
+        text = path.read_bytes().decode("utf-8-sig")
+    except FileNotFoundError:
+        raise ConfigError(path, "", "file not found") from None
+    except OSError as exc:
+        raise ConfigError(path, "", f"cannot read: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(path, "", "not UTF-8 text") from None
+    out = []
+    for n, line in enumerate(text.splitlines(), start=1):
+        tokens = line.split("#", 1)[0].split()
+        if tokens:
+            out.append((n, tokens))
+    return out
+
+
+def _numbers(path: Path, n: int, tokens: list[str]) -> list[float]:
+    values = []
+    for col, tok in enumerate(tokens, start=1):
+        try:
+            v = float(tok)
+        except ValueError:
+            raise ConfigError(path, f"line {n}",
+                              f"column {col} is not a number: {tok!r}") from None
+        if not math.isfinite(v):
+            raise ConfigError(path, f"line {n}", f"column {col} is not finite: {tok!r}")
+        values.append(v)
+    return values
+
+
+def load_rigid_body(path: str | Path, name: str | None = None,
+                    dictionary: str = "DICT_ARUCO_ORIGINAL", units: str = "mm") -> RigidBody:
+    """Read a scikit-surgery rigid-body table into a :class:`RigidBody` (metres).
+
+    Args:
+        path: the table.
+        name: the body's name; the file's stem by default.
+        dictionary: the OpenCV dictionary its tags belong to (the file does not say).
+        units: the file's length unit, ``"mm"`` (the peer's), ``"cm"`` or ``"m"``.
+
+    Raises:
+        ConfigError: naming the file and line, on an unreadable file, a line that is not
+            16 (or 13) numbers, an id that is not a whole number in the dictionary, a
+            centre that is not the corners' mean, a degenerate tag, a repeated id, or
+            no tags at all.
+        ValueError: on an unknown ``units`` or ``dictionary`` (arguments, not the file).
+    """
+    if units not in UNITS:
+        raise ValueError(f"units must be one of {', '.join(UNITS)}, got {units!r}")
+    n_ids = int(aruco_dictionary(dictionary).bytesList.shape[0])  # MarkerFieldError: ValueError
+    path = Path(path)
+    scale = UNITS[units]
+    tags: dict[int, np.ndarray] = {}
+    first_line: dict[int, int] = {}
+    for n, tokens in _lines(path):
+        where = f"line {n}"
+        if len(tokens) not in (16, 13):
+            raise ConfigError(path, where, f"expected 16 columns (tag id, centre x y z, "
+                                           f"4 corners x y z), got {len(tokens)}")
+        values = _numbers(path, n, tokens)
+        if not values[0].is_integer() or not 0 <= values[0] < n_ids:
+            raise ConfigError(path, where, f"tag id {tokens[0]!r} is not a whole number in "
+                                           f"{dictionary} (0..{n_ids - 1})")
+        tid = int(values[0])
+        if tid in tags:
+            raise ConfigError(path, where,
+                              f"tag id {tid} already given on line {first_line[tid]}")
+        corners = np.array(values[-12:]).reshape(4, 3) * scale
+        try:
+            corners = check_tag_corners(corners, f"tag {tid}")
+        except MarkerFieldError as exc:
+            raise ConfigError(path, where, str(exc)) from None
+        if len(values) == 16:
+            centre = np.array(values[1:4]) * scale
+            mean = corners.mean(axis=0)
+            side = float(np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1).mean())
+            tol = max(CENTRE_TOL_ABS, CENTRE_TOL_REL * side)
+            off = float(np.linalg.norm(centre - mean))
+            if off > tol:
+                raise ConfigError(
+                    path, where,
+                    f"tag {tid}: centre {tokens[1:4]} is {off / scale:.4g} {units} from the "
+                    f"mean of its corners {np.round(mean / scale, 4).tolist()} (columns "
+                    "shifted or mistyped?)")
+        tags[tid] = corners
+        first_line[tid] = n
+    if not tags:
+        raise ConfigError(path, "", "no tags (expected one line per tag)")
+    try:
+        return RigidBody(name or path.stem, dictionary, tags)
+    except MarkerFieldError as exc:
+        raise ConfigError(path, "", str(exc)) from None
+
+
+def load_calibration_txt(path: str | Path, size: tuple[int, int],
+                         name: str = "camera") -> CameraModel:
+    """Read a scikit-surgery ``calibration.txt`` into a :class:`CameraModel`.
+
+    Args:
+        path: the file: 3 lines of K (pixels), then 1 line of distortion coefficients.
+        size: image ``(width, height)`` in pixels (the file does not hold it).
+        name: the camera's name.
+
+    The camera's ``T_ref_cam`` is the identity (the file holds no extrinsics).
+
+    Raises:
+        ConfigError: naming the file and line, on a wrong count of lines or numbers, a
+            non-number, or intrinsics :class:`CameraModel` rejects.
+    """
+    path = Path(path)
+    lines = _lines(path)
+    if len(lines) != 4:
+        raise ConfigError(path, "", f"expected 4 lines (3 of K, 1 of distortion), "
+                                    f"got {len(lines)}")
+    rows = []
+    for n, tokens in lines[:3]:
+        if len(tokens) != 3:
+            raise ConfigError(path, f"line {n}", f"a row of K needs 3 numbers, got {len(tokens)}")
+        rows.append(_numbers(path, n, tokens))
+    n, tokens = lines[3]
+    if len(tokens) not in DIST_LENGTHS:
+        raise ConfigError(path, f"line {n}", f"distortion needs "
+                                             f"{', '.join(map(str, DIST_LENGTHS))} numbers, "
+                                             f"got {len(tokens)}")
+    dist = _numbers(path, n, tokens)
+    try:
+        return CameraModel(name, size, np.array(rows), np.array(dist))
+    except CameraModelError as exc:
+        raise ConfigError(path, "", str(exc)) from None
