@@ -185,6 +185,8 @@ class CameraModel:
         eps = 1e-7
         for _ in range(iterations):
             f = self.normalized_to_pixels(xy) - uv
+            if np.all(np.abs(f) < 1e-9):  # the seed is usually this good already
+                break
             fx = (self.normalized_to_pixels(xy + (eps, 0.0)) - uv - f) / eps
             fy = (self.normalized_to_pixels(xy + (0.0, eps)) - uv - f) / eps
             a, b, c, d = fx[:, 0], fy[:, 0], fx[:, 1], fy[:, 1]

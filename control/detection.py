@@ -1,0 +1,457 @@
+"""Finding marker-field corners in an image: ArUco quads, their ids, chessboard corners.
+
+The pipeline, written for speed on a small CPU (see docs/tracking.md):
+
+1. **Quads** are found on a (possibly) reduced copy of the image: adaptive threshold,
+   contours, 4-vertex convex polygons (:func:`find_quads`).
+2. **Decoding** samples each quad's bit grid from the full-resolution image, all quads in
+   one ``cv2.remap`` call, and looks the code up in a table of every id and rotation of the
+   dictionary (:class:`MarkerDecoder`). Only exact codes are accepted: dense dictionaries
+   such as ``DICT_4X4_1000`` leave no room for error correction.
+3. **Chessboard corners** around each decoded marker are predicted through the marker's
+   homography and refined at full resolution with ``cv2.cornerSubPix``
+   (:func:`refine_corners`), with a window sized to the local square so that it stays
+   inside the four squares that meet at the corner.
+
+Pixel convention: the centre of the top-left pixel is (0, 0), as in :mod:`.camera`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from .errors import ControlError
+from .markers import MarkerField, aruco_dictionary
+
+
+class DetectionError(ControlError, ValueError):
+    """An image or a detection request is unusable (wrong dtype, shape, empty ROI)."""
+
+
+#: Subpixel refinement stops after this many iterations or a move below ``_SUBPIX_EPS`` px.
+_SUBPIX_ITERS = 30
+_SUBPIX_EPS = 0.005
+
+
+@dataclass(frozen=True)
+class Quad:
+    """A decoded ArUco marker in one image.
+
+    Attributes:
+        marker_id: dictionary id.
+        corners: 4 x 2 pixels (full resolution), in the marker's own corner order
+            (top-left, top-right, bottom-right, bottom-left of the printed marker).
+    """
+
+    marker_id: int
+    corners: np.ndarray
+
+
+@dataclass
+class FieldCorners:
+    """Chessboard corners of one field found in one image.
+
+    Attributes:
+        ids: board corner ids (N,), OpenCV's numbering.
+        px: refined pixel positions (N x 2).
+        markers: ids of the markers that located them (empty when tracked from a pose).
+    """
+
+    ids: np.ndarray
+    px: np.ndarray
+    markers: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+def check_image(image: np.ndarray, size: tuple[int, int] | None = None,
+                what: str = "image") -> np.ndarray:
+    """Return ``image`` as a C-contiguous mono8 array, or raise :class:`DetectionError`.
+
+    ``size`` is the expected ``(width, height)``.
+    """
+    if not isinstance(image, np.ndarray):
+        raise DetectionError(f"{what}: expected a numpy array, got {type(image).__name__}")
+    if image.dtype != np.uint8:
+        raise DetectionError(f"{what}: expected dtype uint8 (mono8), got {image.dtype}")
+    if image.ndim != 2:
+        raise DetectionError(f"{what}: expected a 2-D mono image, got shape {image.shape}")
+    if size is not None and (image.shape[1], image.shape[0]) != tuple(size):
+        raise DetectionError(
+            f"{what}: image is {image.shape[1]}x{image.shape[0]}, the camera is "
+            f"{size[0]}x{size[1]}")
+    return np.ascontiguousarray(image)
+
+
+# -- quads ------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class QuadParams:
+    """Candidate-quad search settings (pixels of the full-resolution image).
+
+    Attributes:
+        scale: the image is reduced by this factor (1 or 0.5) before thresholding.
+        block: adaptive-threshold block size at the reduced scale (odd).
+        offset: adaptive-threshold constant (grey levels).
+        min_side: smallest quad side kept, full-resolution pixels.
+        max_side: largest quad side kept, full-resolution pixels.
+        approx: polygon approximation tolerance as a fraction of the contour length.
+    """
+
+    scale: float = 1.0
+    block: int = 7
+    offset: float = 7.0
+    min_side: float = 8.0
+    max_side: float = 400.0
+    approx: float = 0.05
+
+
+def find_quads(image: np.ndarray, params: QuadParams = QuadParams(),
+               roi: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """Dark convex quadrilaterals in ``image`` (Q x 4 x 2 full-resolution pixels).
+
+    ``roi`` = (x0, y0, x1, y1), pixel bounds (exclusive end), restricts the search.
+    Corners come clockwise on screen (x right, y down).
+    """
+    x0, y0 = 0, 0
+    sub = image
+    if roi is not None:
+        x0, y0, x1, y1 = roi
+        sub = image[y0:y1, x0:x1]
+    if sub.shape[0] < 8 or sub.shape[1] < 8:
+        return np.zeros((0, 4, 2))
+    s = params.scale
+    small = sub if s == 1.0 else cv2.resize(sub, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
+    binary = cv2.adaptiveThreshold(small, 255, cv2.ADAPTIVE_THRESH_MEAN_C,
+                                   cv2.THRESH_BINARY_INV, params.block, params.offset)
+    contours, _ = cv2.findContours(binary, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    min_len = 4 * params.min_side * s
+    max_len = 4 * params.max_side * s
+    quads = []
+    for c in contours:
+        n = len(c)
+        if n < min_len or n > max_len:
+            continue
+        poly = cv2.approxPolyDP(c, params.approx * n, True)
+        if len(poly) != 4 or not cv2.isContourConvex(poly):
+            continue
+        q = poly.reshape(4, 2).astype(float)
+        side = np.linalg.norm(q - np.roll(q, 1, axis=0), axis=1)
+        if side.min() < params.min_side * s:
+            continue
+        quads.append(q)
+    if not quads:
+        return np.zeros((0, 4, 2))
+    q = np.asarray(quads)
+    # Clockwise on screen: positive signed area with y down.
+    x, y = q[..., 0], q[..., 1]
+    area = np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1)
+    q[area < 0] = q[area < 0][:, ::-1]
+    # Contour pixels lie on the dark side of the edge: half a reduced pixel outward.
+    centre = q.mean(axis=1, keepdims=True)
+    d = q - centre
+    q = q + 0.5 * d / np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-9)
+    q = (q + 0.5) / s - 0.5  # reduced-pixel centres to full-resolution pixel centres
+    q[..., 0] += x0
+    q[..., 1] += y0
+    # Drop near-duplicates (the inner and outer contour of one border): keep the outer.
+    return _unique_quads(q)
+
+
+def _unique_quads(q: np.ndarray) -> np.ndarray:
+    if len(q) < 2:
+        return q
+    centres = q.mean(axis=1)
+    sides = np.linalg.norm(q - np.roll(q, 1, axis=1), axis=2).mean(axis=1)
+    dist = np.linalg.norm(centres[:, None] - centres[None, :], axis=2)
+    # i duplicates a larger quad j when their centres are closer than a quarter of j's side.
+    larger = (sides[None, :] > sides[:, None]) | ((sides[None, :] == sides[:, None])
+                                                   & (np.arange(len(q))[None, :]
+                                                      < np.arange(len(q))[:, None]))
+    dup = np.any(larger & (dist < 0.25 * sides[None, :]), axis=1)
+    return q[~dup]
+
+
+# -- decoding ---------------------------------------------------------------------------
+class MarkerDecoder:
+    """Reads ArUco ids from quads by sampling the bit grid at full resolution.
+
+    Built once per dictionary (the code table covers every id and its four rotations).
+    """
+
+    def __init__(self, dictionary: str, border_bits: int = 1):
+        self.dictionary = dictionary
+        dic = aruco_dictionary(dictionary)
+        self.bits = int(dic.markerSize)
+        self.border = int(border_bits)
+        self.cells = self.bits + 2 * self.border
+        self.table: dict[int, tuple[int, int]] = {}
+        n = dic.bytesList.shape[0]
+        weights = 1 << np.arange(self.bits * self.bits, dtype=np.int64)[::-1]
+        codes = np.empty((n, 4), dtype=np.int64)
+        for i in range(n):
+            img = cv2.aruco.generateImageMarker(dic, i, self.cells, borderBits=self.border)
+            inner = (img[self.border:-self.border, self.border:-self.border] > 127)
+            for k in range(4):
+                codes[i, k] = int(np.sum(np.rot90(inner, k).ravel() * weights))
+        for i in range(n):
+            for k in range(4):
+                # A code that two ids (or two rotations) share is ambiguous: never accept it.
+                c = int(codes[i, k])
+                self.table[c] = (-1, -1) if c in self.table else (i, k)
+        self._weights = weights
+        self._codes = codes
+        ring = np.ones((self.cells, self.cells), dtype=bool)
+        ring[self.border:-self.border, self.border:-self.border] = False
+        self._ring = ring.ravel()
+        # Expected white cells of every id, border included (n x cells^2).
+        self._expect = np.zeros((n, self.cells * self.cells), dtype=bool)
+        self._expect[:, ~self._ring] = (codes[:, :1] & weights[None, :]) > 0
+        # Sample 3 x 3 points inside each cell, away from its edges.
+        g = (np.arange(self.cells)[:, None] + np.array([0.3, 0.5, 0.7])[None, :]).ravel()
+        gx, gy = np.meshgrid(g / self.cells, g / self.cells)
+        self._unit = np.stack([gx.ravel(), gy.ravel()], axis=1)  # (9 c^2) x 2
+
+    def code_of(self, marker_id: int) -> int:
+        """Integer code of ``marker_id`` in its canonical orientation."""
+        return int(self._codes[marker_id, 0])
+
+    def cell_means(self, image: np.ndarray, quads: np.ndarray) -> np.ndarray:
+        """Mean grey level of each bit cell (Q x cells^2), quads as Q x 4 x 2 pixels."""
+        Q = len(quads)
+        H = square_to_quad(np.asarray(quads, dtype=float))  # Q x 3 x 3
+        u = np.concatenate([self._unit, np.ones((len(self._unit), 1))], axis=1)
+        p = np.einsum("qij,kj->qki", H, u)
+        pts = (p[..., :2] / p[..., 2:3]).astype(np.float32)
+        sampled = cv2.remap(image, pts[..., 0], pts[..., 1], cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(float)
+        c = self.cells
+        return sampled.reshape(Q, c, 3, c, 3).transpose(0, 1, 3, 2, 4).reshape(Q, c * c, 9).mean(-1)
+
+    def decode(self, image: np.ndarray, quads: np.ndarray,
+               allowed: Iterable[range] | None = None) -> list[Quad]:
+        """Decode quads (Q x 4 x 2 px, clockwise) into markers; unreadable ones are dropped.
+
+        ``allowed`` restricts the ids accepted (ranges of ids, e.g. the fields' id blocks).
+        """
+        if len(quads) == 0:
+            return []
+        cells = self.cell_means(image, quads)
+        ring = self._ring
+        out: list[Quad] = []
+        for q, m in zip(quads, cells, strict=True):
+            border = m[ring]
+            inner = m[~ring]
+            black = float(np.median(border))
+            white = float(np.max(inner))
+            if white - black < 12.0:
+                continue
+            thr = 0.5 * (black + white)
+            if np.count_nonzero(border > thr) > 2:
+                continue
+            bits = (inner > thr).astype(np.int64)
+            marker_id, rot = self.table.get(int(bits @ self._weights), (-1, -1))
+            if marker_id < 0:
+                continue
+            if allowed is not None and not any(marker_id in r for r in allowed):
+                continue
+            # np.rot90(canonical, k) was seen: the canonical top-left is at index (4 - k) % 4.
+            start = (4 - rot) % 4
+            out.append(Quad(int(marker_id), np.roll(q, -start, axis=0)))
+        return out
+
+    def match_scores(self, image: np.ndarray, quads: np.ndarray,
+                     marker_ids: Sequence[int]) -> np.ndarray:
+        """Fraction of bit cells (border included) that read as expected, per quad.
+
+        Quads here come from a predicted pose, already in the marker's corner order; this is
+        the identity check of predictive tracking. A quad without contrast scores 0.
+        """
+        if len(quads) == 0:
+            return np.zeros(0)
+        m = self.cell_means(image, quads)
+        expect = self._expect[np.asarray(marker_ids, dtype=int)]
+        n_hi = expect.sum(axis=1)
+        n_lo = expect.shape[1] - n_hi
+        hi = np.sum(m * expect, axis=1) / np.maximum(n_hi, 1)
+        lo = np.sum(m * ~expect, axis=1) / np.maximum(n_lo, 1)
+        scores = np.mean((m > 0.5 * (lo + hi)[:, None]) == expect, axis=1)
+        scores[(hi - lo < 12.0) | (n_hi == 0)] = 0.0
+        return scores
+
+
+def square_to_quad(quads: np.ndarray) -> np.ndarray:
+    """Homographies (Q x 3 x 3) taking the unit square's corners (0,0), (1,0), (1,1), (0,1)
+    to each quad's four corners (Q x 4 x 2), in closed form (vectorised, no solver)."""
+    x0, y0 = quads[:, 0, 0], quads[:, 0, 1]
+    x1, y1 = quads[:, 1, 0], quads[:, 1, 1]
+    x2, y2 = quads[:, 2, 0], quads[:, 2, 1]
+    x3, y3 = quads[:, 3, 0], quads[:, 3, 1]
+    dx1, dx2, dx3 = x1 - x2, x3 - x2, x0 - x1 + x2 - x3
+    dy1, dy2, dy3 = y1 - y2, y3 - y2, y0 - y1 + y2 - y3
+    den = dx1 * dy2 - dx2 * dy1
+    den = np.where(np.abs(den) > 1e-12, den, 1e-12)
+    g = (dx3 * dy2 - dx2 * dy3) / den
+    h = (dx1 * dy3 - dx3 * dy1) / den
+    H = np.empty((len(quads), 3, 3))
+    H[:, 0] = np.stack([x1 - x0 + g * x1, x3 - x0 + h * x3, x0], axis=1)
+    H[:, 1] = np.stack([y1 - y0 + g * y1, y3 - y0 + h * y3, y0], axis=1)
+    H[:, 2] = np.stack([g, h, np.ones_like(g)], axis=1)
+    return H
+
+
+@lru_cache(maxsize=16)
+def decoder_for(dictionary: str) -> MarkerDecoder:
+    """A shared :class:`MarkerDecoder` per dictionary name (its table takes ~10 ms to build)."""
+    return MarkerDecoder(dictionary)
+
+
+# -- chessboard corners -----------------------------------------------------------------
+@dataclass(frozen=True)
+class BoardLayout:
+    """Where each marker of a field sits on the flat sheet, and which corners surround it.
+
+    Attributes:
+        marker_flat: marker index -> its 4 corners on the flat sheet (M x 4 x 2, m).
+        marker_corner_ids: marker index -> the board corner ids at its square's four
+            corners (M x 4), -1 where the square corner is on the sheet's outer edge.
+    """
+
+    marker_flat: np.ndarray
+    marker_corner_ids: np.ndarray
+    corner_flat: np.ndarray  # all board corners (corner_count x 2, m)
+
+    @classmethod
+    def of(cls, fld: MarkerField) -> BoardLayout:
+        s = fld.square
+        nx, ny = fld.squares
+        flat = np.asarray(fld.board.getObjPoints(), dtype=float)[:, :, :2]
+        ids = np.full((len(flat), 4), -1, dtype=int)
+        for m, quad in enumerate(flat):
+            col, row = (int(v) for v in np.floor(quad.mean(axis=0) / s))
+            for k, (gx, gy) in enumerate(((col, row), (col + 1, row), (col + 1, row + 1),
+                                          (col, row + 1))):
+                if 1 <= gx <= nx - 1 and 1 <= gy <= ny - 1:
+                    ids[m, k] = (gy - 1) * (nx - 1) + (gx - 1)
+        j = np.arange(fld.corner_count)
+        corner_flat = np.stack([(j % (nx - 1) + 1) * s, (j // (nx - 1) + 1) * s], axis=1)
+        return cls(flat, ids, corner_flat)
+
+
+def predict_corners(fld: MarkerField, layout: BoardLayout, quads: Sequence[Quad]
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Chessboard corners around decoded markers of ``fld``, through each marker's homography.
+
+    Returns ``(ids, px, square_px, markers)``: corner ids (N,), predicted pixels (N x 2), the
+    local square side in pixels (N,), and the ids of the markers used. A corner predicted by
+    two markers takes the mean; corners whose predictions disagree by more than a quarter
+    square are dropped (one of the markers is misread or misplaced).
+    """
+    preds: dict[int, list[np.ndarray]] = {}
+    sizes: dict[int, list[float]] = {}
+    used = []
+    flat_sq = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=float)
+    for quad in quads:
+        m = quad.marker_id - fld.first_id
+        if not 0 <= m < len(layout.marker_flat):
+            continue
+        H, _ = cv2.findHomography(layout.marker_flat[m], quad.corners, 0)
+        if H is None:
+            continue
+        ids = layout.marker_corner_ids[m]
+        col_row = np.floor(layout.marker_flat[m].mean(axis=0) / fld.square)
+        sq = (col_row[None, :] + flat_sq) * fld.square
+        p = np.concatenate([sq, np.ones((4, 1))], axis=1) @ H.T
+        if np.any(p[:, 2] <= 0):
+            continue
+        px = p[:, :2] / p[:, 2:3]
+        side = float(np.sqrt(abs(cv2.contourArea(px.astype(np.float32)))))
+        used.append(quad.marker_id)
+        for k in range(4):
+            if ids[k] >= 0:
+                preds.setdefault(int(ids[k]), []).append(px[k])
+                sizes.setdefault(int(ids[k]), []).append(side)
+    out_ids, out_px, out_sq = [], [], []
+    for cid, ps in preds.items():
+        ps_a = np.asarray(ps)
+        side = float(np.mean(sizes[cid]))
+        if len(ps_a) > 1 and np.max(np.linalg.norm(ps_a - ps_a.mean(0), axis=1)) > 0.25 * side:
+            continue
+        out_ids.append(cid)
+        out_px.append(ps_a.mean(axis=0))
+        out_sq.append(side)
+    order = np.argsort(out_ids)
+    return (np.asarray(out_ids, dtype=int)[order], np.asarray(out_px).reshape(-1, 2)[order],
+            np.asarray(out_sq)[order], np.asarray(sorted(set(used)), dtype=int))
+
+
+def subpix_window(square_px: np.ndarray) -> np.ndarray:
+    """Half-size (px) of the cornerSubPix window for corners with a local square of
+    ``square_px`` pixels, between 2 and 6 px.
+
+    The markers stand about 0.13 square from the corner in the white squares; a window
+    reaching past them pulls the corner toward their edges (measured on simulated cylinder
+    fields: median error 0.05 px at 0.13 square, 0.12 px at 0.2, 0.15 px at 0.25)."""
+    return np.clip(np.round(0.13 * np.asarray(square_px)), 2, 6).astype(int)
+
+
+def refine_corners(image: np.ndarray, px: np.ndarray, square_px: np.ndarray,
+                   max_move: float = 0.35) -> tuple[np.ndarray, np.ndarray]:
+    """Refine predicted chessboard corners at full resolution.
+
+    Returns ``(px, ok)``: refined pixels (N x 2) and a mask of corners that stayed inside
+    the image and moved less than ``max_move`` squares (a larger move means the prediction
+    was not near a corner, or the window slid to another one).
+    """
+    px = np.asarray(px, dtype=float).reshape(-1, 2)
+    out = px.copy()
+    if len(px) == 0:
+        return out, np.zeros(0, dtype=bool)
+    h, w = image.shape
+    win = subpix_window(square_px)
+    inside = ((px[:, 0] >= win + 1) & (px[:, 0] <= w - win - 2)
+              & (px[:, 1] >= win + 1) & (px[:, 1] <= h - win - 2))
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, _SUBPIX_ITERS, _SUBPIX_EPS)
+    for half in np.unique(win[inside]):
+        sel = inside & (win == half)
+        pts = px[sel].astype(np.float32).reshape(-1, 1, 2)
+        cv2.cornerSubPix(image, pts, (int(half), int(half)), (-1, -1), crit)
+        out[sel] = pts.reshape(-1, 2)
+    move = np.linalg.norm(out - px, axis=1)
+    ok = inside & (move < max_move * np.asarray(square_px)) & np.all(np.isfinite(out), axis=1)
+    return out, ok
+
+
+def detect_fields(image: np.ndarray, fields: Sequence[MarkerField],
+                  params: QuadParams = QuadParams(),
+                  roi: tuple[int, int, int, int] | None = None,
+                  layouts: dict[str, BoardLayout] | None = None) -> dict[str, FieldCorners]:
+    """Find the chessboard corners of every field in ``image`` (mono8, full resolution).
+
+    Fields sharing a dictionary are decoded together; markers outside every field's id block
+    are ignored. Fields with no corner found are absent from the result.
+    """
+    image = check_image(image)
+    quads = find_quads(image, params, roi)
+    out: dict[str, FieldCorners] = {}
+    by_dict: dict[str, list[MarkerField]] = {}
+    for f in fields:
+        by_dict.setdefault(f.dictionary, []).append(f)
+    for dic, flds in by_dict.items():
+        allowed = [range(f.first_id, f.first_id + f.marker_count) for f in flds]
+        decoded = decoder_for(dic).decode(image, quads, allowed)
+        for f in flds:
+            mine = [q for q in decoded if f.first_id <= q.marker_id < f.first_id + f.marker_count]
+            if not mine:
+                continue
+            layout = (layouts or {}).get(f.name) or BoardLayout.of(f)
+            ids, px, sq, used = predict_corners(f, layout, mine)
+            px, ok = refine_corners(image, px, sq)
+            if np.any(ok):
+                out[f.name] = FieldCorners(ids[ok], px[ok], used)
+    return out
