@@ -138,16 +138,13 @@ def find_quads(image: np.ndarray, params: QuadParams = QuadParams(),
         if n < min_len or n > max_len:
             continue
         poly = cv2.approxPolyDP(c, params.approx * n, True)
-        if len(poly) != 4 or not cv2.isContourConvex(poly):
-            continue
-        q = poly.reshape(4, 2).astype(float)
-        side = np.linalg.norm(q - np.roll(q, 1, axis=0), axis=1)
-        if side.min() < params.min_side * s:
-            continue
-        quads.append(q)
+        if len(poly) == 4 and cv2.isContourConvex(poly):
+            quads.append(poly.reshape(4, 2))
     if not quads:
         return np.zeros((0, 4, 2))
-    q = np.asarray(quads)
+    q = np.asarray(quads, dtype=float)
+    side = np.linalg.norm(q - q[:, [3, 0, 1, 2]], axis=2).min(axis=1)
+    q = q[side >= params.min_side * s]
     # Clockwise on screen: positive signed area with y down.
     x, y = q[..., 0], q[..., 1]
     area = np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1)
@@ -226,8 +223,8 @@ class MarkerDecoder:
         Q = len(quads)
         H = square_to_quad(np.asarray(quads, dtype=float))  # Q x 3 x 3
         u = np.concatenate([self._unit, np.ones((len(self._unit), 1))], axis=1)
-        p = np.einsum("qij,kj->qki", H, u)
-        pts = (p[..., :2] / p[..., 2:3]).astype(np.float32)
+        p = H @ u.T  # Q x 3 x K
+        pts = (p[:, :2] / p[:, 2:3]).transpose(0, 2, 1).astype(np.float32)
         sampled = cv2.remap(image, pts[..., 0], pts[..., 1], cv2.INTER_LINEAR,
                             borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(float)
         c = self.cells
@@ -242,27 +239,24 @@ class MarkerDecoder:
         if len(quads) == 0:
             return []
         cells = self.cell_means(image, quads)
-        ring = self._ring
+        border = cells[:, self._ring]
+        inner = cells[:, ~self._ring]
+        black = np.median(border, axis=1)
+        white = inner.max(axis=1)
+        thr = 0.5 * (black + white)
+        bits = inner > thr[:, None]
+        codes = bits.astype(np.int64) @ self._weights
+        good = (white - black >= 12.0) & (np.count_nonzero(border > thr[:, None], axis=1) <= 2)
         out: list[Quad] = []
-        for q, m in zip(quads, cells, strict=True):
-            border = m[ring]
-            inner = m[~ring]
-            black = float(np.median(border))
-            white = float(np.max(inner))
-            if white - black < 12.0:
-                continue
-            thr = 0.5 * (black + white)
-            if np.count_nonzero(border > thr) > 2:
-                continue
-            bits = (inner > thr).astype(np.int64)
-            marker_id, rot = self.table.get(int(bits @ self._weights), (-1, -1))
+        for i in np.nonzero(good)[0]:
+            marker_id, rot = self.table.get(int(codes[i]), (-1, -1))
             if marker_id < 0:
                 continue
             if allowed is not None and not any(marker_id in r for r in allowed):
                 continue
             # np.rot90(canonical, k) was seen: the canonical top-left is at index (4 - k) % 4.
             start = (4 - rot) % 4
-            out.append(Quad(int(marker_id), np.roll(q, -start, axis=0)))
+            out.append(Quad(int(marker_id), np.roll(quads[i], -start, axis=0)))
         return out
 
     def match_scores(self, image: np.ndarray, quads: np.ndarray,
@@ -352,42 +346,46 @@ def predict_corners(fld: MarkerField, layout: BoardLayout, quads: Sequence[Quad]
     two markers takes the mean; corners whose predictions disagree by more than a quarter
     square are dropped (one of the markers is misread or misplaced).
     """
-    preds: dict[int, list[np.ndarray]] = {}
-    sizes: dict[int, list[float]] = {}
-    used = []
-    flat_sq = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=float)
-    for quad in quads:
-        m = quad.marker_id - fld.first_id
-        if not 0 <= m < len(layout.marker_flat):
-            continue
-        H, _ = cv2.findHomography(layout.marker_flat[m], quad.corners, 0)
-        if H is None:
-            continue
-        ids = layout.marker_corner_ids[m]
-        col_row = np.floor(layout.marker_flat[m].mean(axis=0) / fld.square)
-        sq = (col_row[None, :] + flat_sq) * fld.square
-        p = np.concatenate([sq, np.ones((4, 1))], axis=1) @ H.T
-        if np.any(p[:, 2] <= 0):
-            continue
-        px = p[:, :2] / p[:, 2:3]
-        side = float(np.sqrt(abs(cv2.contourArea(px.astype(np.float32)))))
-        used.append(quad.marker_id)
-        for k in range(4):
-            if ids[k] >= 0:
-                preds.setdefault(int(ids[k]), []).append(px[k])
-                sizes.setdefault(int(ids[k]), []).append(side)
-    out_ids, out_px, out_sq = [], [], []
-    for cid, ps in preds.items():
-        ps_a = np.asarray(ps)
-        side = float(np.mean(sizes[cid]))
-        if len(ps_a) > 1 and np.max(np.linalg.norm(ps_a - ps_a.mean(0), axis=1)) > 0.25 * side:
-            continue
-        out_ids.append(cid)
-        out_px.append(ps_a.mean(axis=0))
-        out_sq.append(side)
-    order = np.argsort(out_ids)
-    return (np.asarray(out_ids, dtype=int)[order], np.asarray(out_px).reshape(-1, 2)[order],
-            np.asarray(out_sq)[order], np.asarray(sorted(set(used)), dtype=int))
+    m = np.array([q.marker_id - fld.first_id for q in quads], dtype=int)
+    keep = (m >= 0) & (m < len(layout.marker_flat))
+    if not np.any(keep):
+        return (np.zeros(0, dtype=int), np.zeros((0, 2)), np.zeros(0), np.zeros(0, dtype=int))
+    m = m[keep]
+    img = np.stack([q.corners for q, k in zip(quads, keep, strict=True) if k])
+    # Sheet -> image homography of each marker: sheet to the marker's unit square, then
+    # the unit square to the image quad.
+    flat = layout.marker_flat[m]                      # Q x 4 x 2 (TL, TR, BR, BL)
+    side = flat[:, 1, 0] - flat[:, 0, 0]
+    A = np.zeros((len(m), 3, 3))
+    A[:, 0, 0] = A[:, 1, 1] = 1.0 / side
+    A[:, 0, 2] = -flat[:, 0, 0] / side
+    A[:, 1, 2] = -flat[:, 0, 1] / side
+    A[:, 2, 2] = 1.0
+    H = square_to_quad(img) @ A
+    col_row = np.floor(flat.mean(axis=1) / fld.square)
+    sq = (col_row[:, None, :] + np.array([[0, 0], [1, 0], [1, 1], [0, 1]])) * fld.square
+    p = H @ np.concatenate([sq, np.ones((len(m), 4, 1))], axis=2).transpose(0, 2, 1)
+    valid = np.all(p[:, 2] > 0, axis=1)
+    px = (p[:, :2] / np.where(p[:, 2:3] > 0, p[:, 2:3], 1.0)).transpose(0, 2, 1)  # Q x 4 x 2
+    x, y = px[..., 0], px[..., 1]
+    area = 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))
+    ids = layout.marker_corner_ids[m]
+    use = (ids >= 0) & valid[:, None]
+    cid = ids[use]
+    cpx = px[use]
+    cside = np.repeat(np.sqrt(area)[:, None], 4, axis=1)[use]
+    if len(cid) == 0:
+        return (np.zeros(0, dtype=int), np.zeros((0, 2)), np.zeros(0), np.zeros(0, dtype=int))
+    uniq, inv, counts = np.unique(cid, return_inverse=True, return_counts=True)
+    mean_px = np.zeros((len(uniq), 2))
+    np.add.at(mean_px, inv, cpx)
+    mean_px /= counts[:, None]
+    mean_side = np.bincount(inv, cside) / counts
+    spread = np.zeros(len(uniq))
+    np.maximum.at(spread, inv, np.linalg.norm(cpx - mean_px[inv], axis=1))
+    ok = spread <= 0.25 * mean_side
+    used = np.unique(m[valid] + fld.first_id)
+    return uniq[ok], mean_px[ok], mean_side[ok], used
 
 
 def subpix_window(square_px: np.ndarray) -> np.ndarray:

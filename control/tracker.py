@@ -80,7 +80,7 @@ class TrackerSettings:
     roi_margin_px: int = 24
     verify_score: float = 0.9
     verify_fraction: float = 0.6
-    max_obliquity_deg: float = 70.0
+    max_obliquity_deg: float = 60.0
     quads: QuadParams = QuadParams()
 
 
