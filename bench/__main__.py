@@ -6,9 +6,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from . import render
+from . import navigation, render
 
-BENCHES = {"render": render.main}
+BENCHES = {"render": render.main, "navigation": navigation.main}
 
 
 def main() -> int:

@@ -3,6 +3,9 @@
     oralnav sim render SCENE.toml --out DIR [--frames N] [--seed N] [--json]
     oralnav markers print FIELD [--fields FILE] --dpi N --out F.png [--no-label] [--json]
     oralnav config check [FILE] [--json]
+    oralnav track --rig RIG --fields FIELDS --image NAME=PATH [...] [--method M] [--json]
+    oralnav track --rig RIG --fields FIELDS --replay NAME=SOURCE [...] [--mode M] [--json]
+    oralnav bench navigation [--quick] --out DIR
 
 Every ``--json`` prints exactly one JSON object on stdout; progress and logs go to stderr.
 Exit status: 0 done, 2 bad input (the message names the file and key), 1 anything else.
@@ -133,6 +136,95 @@ def cmd_config_check(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- oralnav track --------------------------------------------------------------------
+def _named_paths(items: Sequence[str], option: str) -> dict[str, Path]:
+    out: dict[str, Path] = {}
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise UsageError(f"{option} expects NAME=PATH, got {item!r}")
+        if name in out:
+            raise UsageError(f"{option}: camera {name!r} given twice")
+        out[name] = Path(path)
+    return out
+
+
+def _read_mono(path: Path, camera: str) -> Any:
+    if not path.is_file():
+        raise UsageError(f"camera {camera!r}: no image file {path}")
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise UsageError(f"camera {camera!r}: {path} is not a readable image")
+    return img
+
+
+def _estimate_doc(est) -> dict[str, Any]:
+    return {"T_ref_field": [[round(float(v), 9) for v in row] for row in est.T_ref_field],
+            "corners": est.corners, "reproj_rms_px": round(est.reproj_rms_px, 4),
+            "cameras": list(est.cameras),
+            "position_sigma_mm": round(est.position_sigma_m * 1e3, 5)}
+
+
+def cmd_track(args: argparse.Namespace) -> int:
+    from oralnav.control.tracker import Tracker
+
+    if bool(args.image) == bool(args.replay):
+        raise UsageError("give either --image NAME=PATH (one frame) or --replay NAME=SOURCE")
+    tracker = Tracker.from_files(args.rig, args.fields, method=args.method, mode=args.mode)
+    if args.image:
+        images = {c: _read_mono(p, c) for c, p in _named_paths(args.image, "--image").items()}
+        est = tracker.track(images)
+        t = tracker.last_timing
+        doc = {"fields": {n: _estimate_doc(e) for n, e in est.items()},
+               "timing_ms": {k: round(v, 3) for k, v in t.as_dict().items() if k != "stages"}}
+        lines = [f"{n}: {e.corners} corners, rms {e.reproj_rms_px:.3f} px, t = "
+                 + " ".join(f"{v * 1e3:.3f}" for v in e.T_ref_field[:3, 3]) + " mm"
+                 for n, e in est.items()] or ["no field found"]
+        _emit(args, doc, "\n".join(lines + [f"total {t.total:.1f} ms"]))
+        return 0
+    return _track_replay(args, tracker)
+
+
+def _track_replay(args: argparse.Namespace, tracker) -> int:
+    from oralnav.drivers.camera.replay import frame_count, read_frame
+    from oralnav.drivers.errors import DriverError
+
+    sources = _named_paths(args.replay, "--replay")
+    try:
+        counts = {c: frame_count(p) for c, p in sources.items()}
+    except DriverError as exc:
+        raise UsageError(str(exc)) from exc
+    n = min(counts.values())
+    if args.frames is not None:
+        n = min(n, args.frames)
+    frames = []
+    for k in range(n):
+        try:
+            images = {c: read_frame(p, k) for c, p in sources.items()}
+        except DriverError as exc:
+            raise UsageError(str(exc)) from exc
+        est = tracker.track(images)
+        frames.append({"frame": k, "fields": {f: _estimate_doc(e) for f, e in est.items()},
+                       "timing_ms": round(tracker.last_timing.total, 3),
+                       "stages": dict(tracker.last_timing.stages)})
+        if not args.json or (k + 1) % 25 == 0:
+            _progress(f"frame {k + 1}/{n}: " + (", ".join(
+                f"{f} {e.corners} corners" for f, e in est.items()) or "no field found"))
+    times = [f["timing_ms"] for f in frames]
+    doc = {"frames": frames, "timing_ms": {
+        "median": round(float(sorted(times)[len(times) // 2]), 3) if times else None}}
+    _emit(args, doc, f"tracked {n} frame(s); median {doc['timing_ms']['median']} ms per frame")
+    return 0
+
+
+# -- oralnav bench --------------------------------------------------------------------
+def cmd_bench(args: argparse.Namespace) -> int:
+    from oralnav.bench import navigation
+
+    navigation.main(Path(args.out), quick=args.quick)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="oralnav", description="oralnav tools")
     p.add_argument("--version", action="version", version=f"oralnav {__version__}")
@@ -164,6 +256,27 @@ def build_parser() -> argparse.ArgumentParser:
     ck.add_argument("file", nargs="?", default=None, help="config TOML (default: sim.toml)")
     ck.add_argument("--json", action="store_true", help="print one JSON object")
     ck.set_defaults(func=cmd_config_check)
+
+    tk = sub.add_parser("track", help="estimate marker-field poses in images or recordings")
+    tk.add_argument("--rig", required=True, help="rig TOML (cameras, reference frame)")
+    tk.add_argument("--fields", required=True, help="marker-field TOML")
+    tk.add_argument("--image", action="append", default=[], metavar="NAME=PATH",
+                    help="one camera's image of a single frame (repeat per camera)")
+    tk.add_argument("--replay", action="append", default=[], metavar="NAME=SOURCE",
+                    help="one camera's recording: a video file or an image folder")
+    tk.add_argument("--frames", type=int, default=None, help="replay at most N frames")
+    tk.add_argument("--method", default="nvgba", choices=["nvgba", "ba", "pnp", "opencv"])
+    tk.add_argument("--mode", default="predict", choices=["predict", "roi", "full"],
+                    help="search stage cap for replays (a single frame always searches "
+                         "whole images)")
+    tk.add_argument("--json", action="store_true", help="print one JSON object")
+    tk.set_defaults(func=cmd_track)
+
+    bn = sub.add_parser("bench", help="benchmarks").add_subparsers(dest="cmd", required=True)
+    nv = bn.add_parser("navigation", help="speed/accuracy charts of the tracker (minutes)")
+    nv.add_argument("--quick", action="store_true", help="fewer frames (about 2-3 minutes)")
+    nv.add_argument("--out", required=True, help="folder for navigation.json and charts")
+    nv.set_defaults(func=cmd_bench)
     return p
 
 
