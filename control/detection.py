@@ -166,11 +166,14 @@ def _unique_quads(q: np.ndarray) -> np.ndarray:
     centres = q.mean(axis=1)
     sides = np.linalg.norm(q - np.roll(q, 1, axis=1), axis=2).mean(axis=1)
     dist = np.linalg.norm(centres[:, None] - centres[None, :], axis=2)
-    # i duplicates a larger quad j when their centres are closer than a quarter of j's side.
+    # i duplicates a larger quad j (the inner and outer contour of one marker border) when
+    # their centres are closer than a quarter of j's side and j is at most 1.6 times bigger;
+    # a marker inside a much larger dark frame is not a duplicate.
     larger = (sides[None, :] > sides[:, None]) | ((sides[None, :] == sides[:, None])
                                                    & (np.arange(len(q))[None, :]
                                                       < np.arange(len(q))[:, None]))
-    dup = np.any(larger & (dist < 0.25 * sides[None, :]), axis=1)
+    similar = sides[None, :] <= 1.6 * sides[:, None]
+    dup = np.any(larger & similar & (dist < 0.25 * sides[None, :]), axis=1)
     return q[~dup]
 
 

@@ -259,7 +259,9 @@ class Tracker:
 
     def _accept(self, est: PoseEstimate | None) -> PoseEstimate | None:
         s = self.settings
-        if est is None or est.corners < s.min_corners or est.reproj_rms_px > s.max_rms_px:
+        if (est is None or est.corners < s.min_corners
+                or not np.isfinite(est.reproj_rms_px) or est.reproj_rms_px > s.max_rms_px
+                or not np.all(np.isfinite(est.covariance))):
             return None
         return est
 
@@ -477,6 +479,8 @@ class Tracker:
         T_cam = np.eye(4)
         T_cam[:3, :3] = Rotation.from_rotvec(rvec.ravel()).as_matrix()
         T_cam[:3, 3] = tvec.ravel()
+        if T_cam[2, 3] <= 0 or not np.all(np.isfinite(T_cam)):
+            return None  # a mirrored solution behind the camera
         T = cam.T_ref_cam @ T_cam
         ob = Observation(cam, rows, px)
         cov = pose_covariance(fld, [ob], T)
