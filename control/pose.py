@@ -241,6 +241,18 @@ def _residuals(T: np.ndarray, X: np.ndarray, obs_xy: np.ndarray, R_cr: np.ndarra
     return r, J.reshape(-1, 6), z
 
 
+def _stack(fld: MarkerField, obs: Sequence[Observation]):
+    """Rows of all observations stacked: model points (N x 3), normalised measurements
+    (N x 2), camera index (N,), and per row the camera's R_cam_ref, t_cam_ref and focal."""
+    X = np.concatenate([fld.corners[o.rows] for o in obs])
+    xy = np.concatenate([o.xy for o in obs])
+    cam_idx = np.concatenate([np.full(len(o.rows), k) for k, o in enumerate(obs)])
+    R_cr = np.stack([o.camera.T_cam_ref[:3, :3] for o in obs])[cam_idx]
+    t_cr = np.stack([o.camera.T_cam_ref[:3, 3] for o in obs])[cam_idx]
+    f = np.array([0.5 * (o.camera.K[0, 0] + o.camera.K[1, 1]) for o in obs])[cam_idx]
+    return X, xy, cam_idx, R_cr, t_cr, f
+
+
 def bundle_adjust(fld: MarkerField, observations: Sequence[Observation], T0: np.ndarray,
                   weighting: Weighting = "none", normals: np.ndarray | None = None,
                   iterations: int = 12, reject_outliers: bool = True, method: str = "ba"
@@ -256,12 +268,7 @@ def bundle_adjust(fld: MarkerField, observations: Sequence[Observation], T0: np.
     obs = [o for o in observations if len(o.rows) > 0]
     if not obs:
         return None
-    X = np.concatenate([fld.corners[o.rows] for o in obs])
-    xy = np.concatenate([o.xy for o in obs])
-    cam_idx = np.concatenate([np.full(len(o.rows), k) for k, o in enumerate(obs)])
-    R_cr = np.stack([o.camera.T_cam_ref[:3, :3] for o in obs])[cam_idx]
-    t_cr = np.stack([o.camera.T_cam_ref[:3, 3] for o in obs])[cam_idx]
-    f = np.array([0.5 * (o.camera.K[0, 0] + o.camera.K[1, 1]) for o in obs])[cam_idx]
+    X, xy, cam_idx, R_cr, t_cr, f = _stack(fld, obs)
     if weighting != "none":
         if normals is None:
             normals = corner_normals(fld)
@@ -387,12 +394,7 @@ def pose_covariance(fld: MarkerField, observations: Sequence[Observation], T: np
     obs = [o for o in observations if len(o.rows) > 0]
     if not obs:
         return None
-    X = np.concatenate([fld.corners[o.rows] for o in obs])
-    xy = np.concatenate([o.xy for o in obs])
-    cam_idx = np.concatenate([np.full(len(o.rows), k) for k, o in enumerate(obs)])
-    R_cr = np.stack([o.camera.T_cam_ref[:3, :3] for o in obs])[cam_idx]
-    t_cr = np.stack([o.camera.T_cam_ref[:3, 3] for o in obs])[cam_idx]
-    f = np.array([0.5 * (o.camera.K[0, 0] + o.camera.K[1, 1]) for o in obs])[cam_idx]
+    X, xy, cam_idx, R_cr, t_cr, f = _stack(fld, obs)
     ok = np.all(np.isfinite(xy), axis=1)
     if ok.sum() < 4:
         return None
