@@ -272,11 +272,9 @@ def bundle_adjust(fld: MarkerField, observations: Sequence[Observation], T0: np.
     if weighting != "none":
         if normals is None:
             normals = corner_normals(fld)
-        rows = np.concatenate([o.rows for o in obs])
         w = np.concatenate([
             obliquity_weights(T0, normals[o.rows], fld.corners[o.rows], o.camera, weighting)
             for o in obs])
-        del rows
     else:
         w = np.ones(len(X))
     keep = np.all(np.isfinite(xy), axis=1)

@@ -28,6 +28,7 @@ from typing import Literal
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .camera import CameraModel, Rig
 from .detection import (
@@ -434,7 +435,7 @@ class Tracker:
                      {c: (0, 0, self.rig[c].width, self.rig[c].height) for c in imgs})
             t1 = time.perf_counter()
             timing.roi += (t1 - t) * 1e3
-            best: tuple[int, str, np.ndarray, np.ndarray, np.ndarray] | None = None
+            best: tuple[int, str, np.ndarray, np.ndarray] | None = None
             for cam_name, (x0, y0, x1, y1) in boxes.items():
                 if cam_name not in imgs:
                     continue
@@ -446,12 +447,12 @@ class Tracker:
                 rows = np.array([fld.corner_index.get(int(i), -1) for i in ch_ids.ravel()])
                 px, rows = px[rows >= 0], rows[rows >= 0]
                 if best is None or len(rows) > best[0]:
-                    best = (len(rows), cam_name, rows, px, np.zeros(0))
+                    best = (len(rows), cam_name, rows, px)
             timing.recognition += (time.perf_counter() - t1) * 1e3
             if best is None:
                 continue
             t2 = time.perf_counter()
-            _, cam_name, rows, px, _ = best
+            _, cam_name, rows, px = best
             cam = self.rig[cam_name]
             est = self._opencv_pose(fld, cam, rows, px)
             timing.pose += (time.perf_counter() - t2) * 1e3
@@ -474,8 +475,6 @@ class Tracker:
             return None
         if not ok:
             return None
-        from scipy.spatial.transform import Rotation
-
         T_cam = np.eye(4)
         T_cam[:3, :3] = Rotation.from_rotvec(rvec.ravel()).as_matrix()
         T_cam[:3, 3] = tvec.ravel()
