@@ -42,6 +42,9 @@ MIN_SIGMA_PX = 0.05
 #: Residuals above this many robust sigmas (and above ``MIN_OUTLIER_PX``) are outliers.
 OUTLIER_SIGMAS = 4.0
 MIN_OUTLIER_PX = 1.0
+#: A coplanar corner set whose image is thinner than this (width / length of its spread)
+#: is seen edge-on and refused (see ``_degenerate``).
+MIN_EDGE_ON_SPREAD = 0.06
 
 
 @dataclass
@@ -101,23 +104,39 @@ def corner_normals(fld: MarkerField) -> np.ndarray:
 
     Eqs. 9-13: the normal is the eigenvector of least eigenvalue of the scatter matrix of
     the neighbourhood, centred on its mean. The corner itself joins its 8-connected
-    neighbours (an edge corner has as few as 3). Signs are oriented to the printed face
+    neighbours (an edge corner has as few as 3); where those are too few or on a line, the
+    nearest model corners widen it. Signs are oriented to the printed face
     where that is known (plane and cylinder); weights use ``|cos|`` so it does not matter.
     """
     P = fld.corners
     out = np.zeros_like(P)
     for j, nb in enumerate(fld.neighbours):
-        pts = P[np.concatenate([[j], nb])]
-        if len(pts) < 3:
-            out[j] = (0.0, 0.0, -1.0)
-            continue
-        Q = pts - pts.mean(axis=0)
-        _, vecs = np.linalg.eigh(Q.T @ Q)
-        out[j] = vecs[:, 0]
+        normal = _least_scatter_axis(P[np.concatenate([[j], nb])])
+        if normal is None:
+            # Too few or collinear neighbours (a model missing the next row): widen to the
+            # nearest corners in the model until they span a surface patch.
+            order = np.argsort(np.linalg.norm(P - P[j], axis=1))
+            for k in range(9, len(P) + 8, 8):
+                normal = _least_scatter_axis(P[order[:k]])
+                if normal is not None:
+                    break
+        out[j] = (0.0, 0.0, -1.0) if normal is None else normal
     if fld.renderable:
         face = fld.sheet_normals(fld.corners_flat)
         out *= np.sign(np.sum(out * face, axis=1, keepdims=True) + 1e-300)
     return out
+
+
+def _least_scatter_axis(pts: np.ndarray) -> np.ndarray | None:
+    """Eigenvector of least eigenvalue of the points' centred scatter (eqs. 10-13), or None
+    when it is not defined: fewer than 3 points, or points (nearly) on a line."""
+    if len(pts) < 3:
+        return None
+    Q = pts - pts.mean(axis=0)
+    vals, vecs = np.linalg.eigh(Q.T @ Q)
+    if vals[1] <= 1e-4 * vals[2]:
+        return None
+    return vecs[:, 0]
 
 
 def obliquity_weights(T_ref_field: np.ndarray, normals: np.ndarray, points: np.ndarray,
@@ -152,14 +171,35 @@ def obliquity_weights(T_ref_field: np.ndarray, normals: np.ndarray, points: np.n
 
 # -- coarse PnP ---------------------------------------------------------------------------
 def _degenerate(points: np.ndarray, px: np.ndarray) -> bool:
-    """True when the corners cannot fix a pose: too few, or (nearly) collinear."""
+    """True when the corners cannot fix a pose: too few, (nearly) collinear in the model
+    or in the image, or coplanar in the model and seen nearly edge-on.
+
+    The last case is a planar set (one row of a cylinder field is a planar arc) whose plane
+    nearly contains the camera centre: its image is a thin band, and PnP finds a mirrored
+    pose about the line of sight that fits the band to under a pixel (21 mm and 168 deg off
+    in the test, at a spread ratio of 0.035). The limit is ``MIN_EDGE_ON_SPREAD``: a whole
+    10 x 7 plane field reaches it only at about 85 deg of obliquity, where no corner is
+    usable anyway, and two rows of one at about 70 deg.
+    """
     if len(points) < 4:
         return True
-    for arr in (points, px):
-        sv = np.linalg.svd(arr - arr.mean(axis=0), compute_uv=False)
+    sv3 = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+    sv2 = np.linalg.svd(px - px.mean(axis=0), compute_uv=False)
+    for sv in (sv3, sv2):
         if sv[0] <= 0 or sv[1] < 1e-3 * sv[0]:
             return True
-    return False
+    return bool(sv3[2] < 1e-3 * sv3[0] and sv2[1] < MIN_EDGE_ON_SPREAD * sv2[0])
+
+
+def _degenerate_set(points: np.ndarray, xy: np.ndarray, cam_idx: np.ndarray) -> bool:
+    """:func:`_degenerate` for observations stacked over cameras: the image tests apply
+    to a single camera only, since two cameras triangulate what one sees edge-on."""
+    if len(np.unique(cam_idx)) == 1:
+        return _degenerate(points, xy)
+    if len(points) < 4:
+        return True
+    sv = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+    return bool(sv[0] <= 0 or sv[1] < 1e-3 * sv[0])
 
 
 def pnp_camera(points: np.ndarray, px: np.ndarray, camera: CameraModel,
@@ -280,7 +320,7 @@ def bundle_adjust(fld: MarkerField, observations: Sequence[Observation], T0: np.
     keep = np.all(np.isfinite(xy), axis=1)
     T = T0.copy()
     for _pass in range(2 if reject_outliers else 1):
-        if keep.sum() < 4 or _degenerate(X[keep], xy[keep]):
+        if keep.sum() < 4 or _degenerate_set(X[keep], xy[keep], cam_idx[keep]):
             return None
         T = _solve(T, X[keep], xy[keep], R_cr[keep], t_cr[keep], f[keep],
                           w[keep], iterations)

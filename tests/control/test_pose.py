@@ -193,12 +193,6 @@ def test_pnp_camera_exact_and_degenerate_sets():
     assert pnp_camera(np.zeros((0, 3)), np.zeros((0, 2)), cam) is None
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "pnp_camera only rejects collinear sets: one row of a cylinder field (8 exact corners "
-    "on a planar arc the right camera sees nearly edge-on) passes _degenerate, RANSAC "
-    "SQPNP returns a flipped pose 21 mm / 168 deg off with 7 of 8 'inliers', and "
-    "estimate_pose('pnp'/'ba'/'nvgba') keeps it with 0.86-0.94 px RMS, under the "
-    "tracker's max_rms_px of 1.0 and over its min_corners of 6"))
 def test_single_arc_of_cylinder_corners_gives_none_or_the_right_pose():
     """Section III.D coarse pose: a near-degenerate corner set (one row of a cylinder
     field: a planar arc, here seen almost edge-on) gives None or the right pose, never a
@@ -217,6 +211,22 @@ def test_single_arc_of_cylinder_corners_gives_none_or_the_right_pose():
         if est is not None and est.reproj_rms_px <= 1.0:
             dt, dr = pose_error(est.T_ref_field, T)
             assert dt < 1e-3 and dr < np.radians(1.0), (method, dt, np.degrees(dr))
+
+
+def test_single_arc_seen_by_both_cameras_gives_the_right_pose():
+    """Section III.D, eqs. 15-16: the same planar arc of cylinder corners that one camera
+    sees edge-on is not refused when both cameras see it (two views triangulate it), and
+    stereo BA recovers the pose within 0.1 mm and 0.1 deg from a nearby start."""
+    fld, T = POSES["cylinder"]
+    obs = []
+    for name in RIG.names:
+        rows, px, _ = _visible(fld, T, RIG[name])
+        line = np.isclose(fld.corners[rows, 1], 0.003)
+        obs.append(Observation(RIG[name], rows[line], px[line]))
+    est = bundle_adjust(fld, obs, _perturb(T, 2.0, 2.0))
+    assert est is not None and len(est.cameras) == 2
+    dt, dr = pose_error(est.T_ref_field, T)
+    assert dt < 1e-4 and dr < np.radians(0.1), (dt, np.degrees(dr))
 
 
 def test_pnp_ransac_rejects_gross_outliers():
@@ -306,12 +316,6 @@ def test_corner_normals_of_a_points_field():
         np.testing.assert_allclose(np.abs(n[:, 2]), 1.0, atol=1e-9)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "corner_normals handles only neighbourhoods of fewer than 3 points; when a corner "
-    "and its known neighbours are collinear (a model missing the next row of corners), "
-    "the scatter matrix has a double least eigenvalue and eigh returns a vector lying in "
-    "the surface: the NVG-BA weight of that corner drops to the 1e-3 floor and predictive "
-    "tracking (face_normals = normals on points fields) never looks at it"))
 def test_corner_normals_with_collinear_neighbourhoods():
     """Eqs. 9-13 on a reconstructed model missing a row of corners (row 1, ids 9-17):
     the corners of row 0 keep a usable normal (here +-z), not one lying in the surface."""
