@@ -69,6 +69,11 @@ class TrackerSettings:
         roi_margin_px: plus this many pixels on each side.
         verify_score: fraction of a marker's bit cells that must read as expected.
         verify_fraction: fraction of checked markers that must pass in predictive tracking.
+        max_position_sigma_mm: an estimate whose covariance gives the field origin a
+            standard deviation over this along any axis is not reported (an ill-posed fit:
+            a mirrored pose of a thin corner set had 1.3 mm).
+        max_rotation_sigma_deg: likewise for the rotation's standard deviation (0.8 deg
+            there; the 16 mm end-effector field has 0.07 deg).
         max_obliquity_deg: predictive tracking skips corners seen more obliquely than this
             (angle between the surface normal and the line of sight); their refined
             positions are biased (0.5-0.8 px at 63 deg on the shipped cylinders).
@@ -81,6 +86,8 @@ class TrackerSettings:
     roi_margin_px: int = 24
     verify_score: float = 0.9
     verify_fraction: float = 0.6
+    max_position_sigma_mm: float = 0.5
+    max_rotation_sigma_deg: float = 0.5
     max_obliquity_deg: float = 60.0
     quads: QuadParams = QuadParams()
 
@@ -96,6 +103,8 @@ class _FieldModel:
     step_rows: np.ndarray        # (N, 2): row of the x and the y grid neighbour, or -1
     marker_quads: np.ndarray     # (M, 4, 3) marker corners on the surface
     marker_ids: np.ndarray       # (M,)
+    marker_normals: np.ndarray   # (M, 3) surface normal at each marker's centre
+    signed: bool                 # normals point out of the printed face (else sign unknown)
 
     @classmethod
     def of(cls, fld: MarkerField) -> _FieldModel:
@@ -114,8 +123,24 @@ class _FieldModel:
         else:
             quads3 = _interpolate_points_field(fld, layout.marker_flat)
         normals = corner_normals(fld)
-        face = fld.sheet_normals(fld.corners_flat) if fld.renderable else normals
-        return cls(fld, layout, normals, face, step, quads3, fld.marker_ids)
+        if fld.renderable:
+            face = fld.sheet_normals(fld.corners_flat)
+            m_normals = fld.sheet_normals(layout.marker_flat.mean(axis=1))
+        else:
+            face = normals
+            centres = quads3.mean(axis=1)
+            nearest = np.argmin(np.linalg.norm(
+                centres[:, None, :] - fld.corners[None, :, :], axis=2), axis=1)
+            m_normals = normals[nearest]
+        return cls(fld, layout, normals, face, step, quads3, fld.marker_ids, m_normals,
+                   fld.renderable)
+
+    def facing_cos(self, normals_cam: np.ndarray, p_cam: np.ndarray) -> np.ndarray:
+        """Cosine between each surface normal and the direction to the camera (camera
+        frame); negative for a surface turned away, where the normals' sign is known."""
+        ray = p_cam / np.linalg.norm(p_cam, axis=1, keepdims=True)
+        cos = -np.sum(normals_cam * ray, axis=1)
+        return cos if self.signed else np.abs(cos)
 
 
 def _interpolate_points_field(fld: MarkerField, flat: np.ndarray) -> np.ndarray:
@@ -264,6 +289,10 @@ class Tracker:
                 or not np.isfinite(est.reproj_rms_px) or est.reproj_rms_px > s.max_rms_px
                 or not np.all(np.isfinite(est.covariance))):
             return None
+        rot_var = float(np.max(np.linalg.eigvalsh(est.covariance[3:, 3:])))
+        if (est.position_sigma_m * 1e3 > s.max_position_sigma_mm
+                or np.degrees(np.sqrt(max(rot_var, 0.0))) > s.max_rotation_sigma_deg):
+            return None
         return est
 
     def _track_own(self, imgs: dict[str, np.ndarray], timing: FrameTiming
@@ -317,8 +346,38 @@ class Tracker:
         method = self.method if self.method != "opencv" else "pnp"
         est = estimate_pose(fld, obs, method, self.weighting, self._models[name].normals,
                             T_guess=T_guess)
+        if est is not None:
+            est = self._without_grazing(self._models[name], est, method)
         timing.pose += (time.perf_counter() - t) * 1e3
         return self._accept(est)
+
+    def _without_grazing(self, model: _FieldModel, est: PoseEstimate, method: str
+                         ) -> PoseEstimate:
+        """Refit ``est`` without the corners it shows more oblique than
+        ``max_obliquity_deg``, when enough squarely seen corners remain.
+
+        Refined corners at grazing angles are biased (0.2-0.8 px at 60-65 deg on the
+        shipped cylinders) and NVG-BA's weights only damp them; predictive tracking never
+        looks at them, and this gives the full-frame and ROI paths the same corner policy.
+        A field seen only at grazing angles keeps them, weighted, rather than vanishing.
+        """
+        s = self.settings
+        cos_min = np.cos(np.radians(s.max_obliquity_deg))
+        obs, dropped = [], 0
+        for cam_name, (rows, px) in est.per_camera.items():
+            cam = self.rig[cam_name]
+            T_cam_field = cam.T_cam_ref @ est.T_ref_field
+            p_cam = model.field.corners[rows] @ T_cam_field[:3, :3].T + T_cam_field[:3, 3]
+            ok = model.facing_cos(model.face_normals[rows] @ T_cam_field[:3, :3].T,
+                                  p_cam) > cos_min
+            dropped += int(np.sum(~ok))
+            if np.any(ok):
+                obs.append(Observation(cam, rows[ok], px[ok]))
+        if dropped == 0 or sum(len(o.rows) for o in obs) < max(s.min_corners, 8):
+            return est
+        refit = estimate_pose(model.field, obs, method, self.weighting, model.normals,
+                              T_guess=est.T_ref_field)
+        return est if refit is None else refit
 
     # -- ROI (eqs. 18-19) -----------------------------------------------------------------
     def roi_boxes(self, name: str, T_ref_field: np.ndarray) -> dict[str, tuple[int, int, int, int]]:
@@ -379,9 +438,7 @@ class Tracker:
             R, tv = T_cam_field[:3, :3], T_cam_field[:3, 3]
             p_cam = fld.corners @ R.T + tv
             uv = cam.project(p_cam)
-            n_cam = model.face_normals @ R.T
-            ray = p_cam / np.linalg.norm(p_cam, axis=1, keepdims=True)
-            facing = np.abs(np.sum(n_cam * ray, axis=1)) > cos_min
+            facing = model.facing_cos(model.face_normals @ R.T, p_cam) > cos_min
             vis = facing & np.all(np.isfinite(uv), axis=1) & cam.in_image(uv, margin=4)
             if vis.sum() < s.min_corners:
                 timing.roi += (time.perf_counter() - t) * 1e3
@@ -398,9 +455,12 @@ class Tracker:
             timing.roi += (t1 - t) * 1e3
             px, ok = refine_corners(img, uv[rows], sq[rows])
             # Identity: the bits of the markers the pose puts in view must read right.
-            mq = cam.project(model.marker_quads.reshape(-1, 3) @ R.T + tv).reshape(-1, 4, 2)
+            mq_cam = model.marker_quads.reshape(-1, 3) @ R.T + tv
+            mq = cam.project(mq_cam).reshape(-1, 4, 2)
             side = np.linalg.norm(mq - np.roll(mq, 1, axis=1), axis=2).min(axis=1)
-            mvis = np.all(np.isfinite(side)) & np.isfinite(side) & (side > 12.0)
+            centres = mq_cam.reshape(-1, 4, 3).mean(axis=1)
+            mvis = np.isfinite(side) & (side > 12.0)
+            mvis &= model.facing_cos(model.marker_normals @ R.T, centres) > cos_min
             mvis &= np.all(cam.in_image(mq.reshape(-1, 2), margin=2).reshape(-1, 4), axis=1)
             if np.any(mvis):
                 scores = decoder_for(fld.dictionary).match_scores(
