@@ -36,6 +36,8 @@ from .markers import MarkerField
 
 Weighting = Literal["none", "cos", "cos2", "axis", "paper"]
 WEIGHTINGS: tuple[str, ...] = ("none", "cos", "cos2", "axis", "paper")
+#: The weighting NVG-BA uses unless told otherwise (see docs/tracking.md for the choice).
+DEFAULT_WEIGHTING: Weighting = "cos"
 
 #: Smallest residual standard deviation (px) used for the covariance.
 MIN_SIGMA_PX = 0.05
@@ -403,8 +405,9 @@ def _estimate(fld: MarkerField, obs: Sequence[Observation], T: np.ndarray, keep:
 
 def estimate_pose(fld: MarkerField, observations: Sequence[Observation],
                   method: Literal["pnp", "ba", "nvgba"] = "nvgba",
-                  weighting: Weighting = "cos", normals: np.ndarray | None = None,
-                  T_guess: np.ndarray | None = None) -> PoseEstimate | None:
+                  weighting: Weighting = DEFAULT_WEIGHTING,
+                  normals: np.ndarray | None = None, T_guess: np.ndarray | None = None
+                  ) -> PoseEstimate | None:
     """The whole chain for one field: coarse PnP, then BA or NVG-BA over all cameras.
 
     ``pnp`` stops after the coarse pose (refined over the best camera only, with the same
