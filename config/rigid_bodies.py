@@ -19,6 +19,7 @@ accepts).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -132,6 +133,31 @@ def load_rigid_body(path: str | Path, name: str | None = None,
         return RigidBody(name or path.stem, dictionary, tags)
     except MarkerFieldError as exc:
         raise ConfigError(path, "", str(exc)) from None
+
+
+def load_rigid_bodies(items: Iterable[RigidBody | str | Path | tuple[str, str | Path]],
+                      dictionary: str = "DICT_ARUCO_ORIGINAL",
+                      units: str = "mm") -> list[RigidBody]:
+    """Rigid bodies from a mix of :class:`RigidBody` objects (kept as they are) and tag
+    tables: a path (the body is named after the file's stem) or a ``(name, path)`` pair,
+    read by :func:`load_rigid_body` with ``dictionary`` and ``units``.
+
+    Raises:
+        ConfigError: as :func:`load_rigid_body`; ValueError: an item of another kind.
+    """
+    out = []
+    for item in items:
+        if isinstance(item, RigidBody):
+            out.append(item)
+        elif isinstance(item, str | Path):
+            out.append(load_rigid_body(item, dictionary=dictionary, units=units))
+        elif (isinstance(item, tuple) and len(item) == 2 and isinstance(item[0], str)
+              and isinstance(item[1], str | Path)):
+            out.append(load_rigid_body(item[1], item[0], dictionary=dictionary, units=units))
+        else:
+            raise ValueError("a rigid body is a RigidBody, a tag-table path or a "
+                             f"(name, path) pair, got {item!r}")
+    return out
 
 
 def load_calibration_txt(path: str | Path, size: tuple[int, int],

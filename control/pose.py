@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, Protocol
 
 import cv2
 import numpy as np
@@ -33,6 +33,15 @@ from scipy.spatial.transform import Rotation
 
 from .camera import CameraModel
 from .markers import MarkerField
+
+
+class CornerModel(Protocol):
+    """What plain BA (``weighting="none"``) reads of a model: its corners (N x 3, model
+    frame, m). A :class:`MarkerField` is one; so is a rigid body's tag-corner table."""
+
+    @property
+    def corners(self) -> np.ndarray: ...
+
 
 Weighting = Literal["none", "cos", "cos2", "axis", "paper"]
 WEIGHTINGS: tuple[str, ...] = ("none", "cos", "cos2", "axis", "paper")
@@ -97,7 +106,24 @@ class PoseEstimate:
     @property
     def position_sigma_m(self) -> float:
         """Largest standard deviation of the field origin along any axis (m)."""
-        return float(np.sqrt(np.max(np.linalg.eigvalsh(self.covariance[:3, :3]))))
+        return float(np.sqrt(max(np.max(np.linalg.eigvalsh(self.covariance[:3, :3])), 0.0)))
+
+    @property
+    def rotation_sigma_deg(self) -> float:
+        """Largest standard deviation of the rotation about any axis (deg)."""
+        var = float(np.max(np.linalg.eigvalsh(self.covariance[3:, 3:])))
+        return float(np.degrees(np.sqrt(max(var, 0.0))))
+
+    def within(self, max_rms_px: float, max_position_sigma_mm: float,
+               max_rotation_sigma_deg: float, min_corners: int = 4) -> bool:
+        """True for a finite fit within these reprojection and covariance limits: the
+        gate a caller applies before reporting the pose (a wrong pose is worse than none).
+        """
+        return bool(self.corners >= min_corners and np.isfinite(self.reproj_rms_px)
+                    and self.reproj_rms_px <= max_rms_px
+                    and np.all(np.isfinite(self.covariance))
+                    and self.position_sigma_m * 1e3 <= max_position_sigma_mm
+                    and self.rotation_sigma_deg <= max_rotation_sigma_deg)
 
 
 # -- NVG-BA normals and weights (eqs. 9-14) ----------------------------------------------
@@ -283,7 +309,7 @@ def _residuals(T: np.ndarray, X: np.ndarray, obs_xy: np.ndarray, R_cr: np.ndarra
     return r, J.reshape(-1, 6), z
 
 
-def _stack(fld: MarkerField, obs: Sequence[Observation]):
+def _stack(fld: CornerModel, obs: Sequence[Observation]):
     """Rows of all observations stacked: model points (N x 3), normalised measurements
     (N x 2), camera index (N,), and per row the camera's R_cam_ref, t_cam_ref and focal."""
     X = np.concatenate([fld.corners[o.rows] for o in obs])
@@ -295,9 +321,10 @@ def _stack(fld: MarkerField, obs: Sequence[Observation]):
     return X, xy, cam_idx, R_cr, t_cr, f
 
 
-def bundle_adjust(fld: MarkerField, observations: Sequence[Observation], T0: np.ndarray,
-                  weighting: Weighting = "none", normals: np.ndarray | None = None,
-                  iterations: int = 12, reject_outliers: bool = True, method: str = "ba"
+def bundle_adjust(fld: MarkerField | CornerModel, observations: Sequence[Observation],
+                  T0: np.ndarray, weighting: Weighting = "none",
+                  normals: np.ndarray | None = None, iterations: int = 12,
+                  reject_outliers: bool = True, method: str = "ba"
                   ) -> PoseEstimate | None:
     """Refine ``T0`` (``T_ref_field``) over every observation; eqs. 15-17.
 
@@ -305,7 +332,8 @@ def bundle_adjust(fld: MarkerField, observations: Sequence[Observation], T0: np.
     an analytic Jacobian (see :func:`_solve`). Weights, when asked for, come
     from the coarse pose (as in the paper) and stay fixed. Observations with residuals over
     ``OUTLIER_SIGMAS`` robust sigmas are dropped once and the fit repeated. Returns None when
-    fewer than 4 corners or a degenerate set remain.
+    fewer than 4 corners or a degenerate set remain. NVG-BA weights without ``normals``
+    need a :class:`MarkerField` (its corner neighbourhoods); plain BA takes any model.
     """
     obs = [o for o in observations if len(o.rows) > 0]
     if not obs:
@@ -385,7 +413,7 @@ def _solve(T0: np.ndarray, X, xy, R_cr, t_cr, f, w, iterations: int) -> np.ndarr
     return T if np.all(z > 0) else None
 
 
-def _estimate(fld: MarkerField, obs: Sequence[Observation], T: np.ndarray, keep: np.ndarray,
+def _estimate(fld: CornerModel, obs: Sequence[Observation], T: np.ndarray, keep: np.ndarray,
               cam_idx: np.ndarray, cov: np.ndarray, method: str) -> PoseEstimate:
     per_camera: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     sq = []
@@ -428,7 +456,7 @@ def estimate_pose(fld: MarkerField, observations: Sequence[Observation],
     raise ValueError(f"unknown method {method!r}; expected 'pnp', 'ba' or 'nvgba'")
 
 
-def pose_covariance(fld: MarkerField, observations: Sequence[Observation], T: np.ndarray
+def pose_covariance(fld: CornerModel, observations: Sequence[Observation], T: np.ndarray
                     ) -> np.ndarray | None:
     """6x6 covariance of ``[dt, dtheta]`` (reference frame) of an unweighted fit at ``T``,
     for poses found by other means (the OpenCV baseline); None when singular."""

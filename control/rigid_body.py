@@ -18,6 +18,13 @@ by SQPnP; a tag-level consensus then drops tags that disagree with the others (a
 a copy of a tag stuck elsewhere), and Levenberg-Marquardt polishes the pose on the tags that
 agree. Frames: ``T_cam_body`` maps body points (m) into the camera frame (OpenCV: z along
 the optical axis, x right, y down the image); pixels follow :mod:`oralnav.control.camera`.
+
+Over a rig, :func:`estimate_body` takes the camera whose tags agree best as the start, adds
+the agreeing tags of the other cameras, and refines the body's ``T_ref_body`` jointly by the
+bundle adjustment of :mod:`.pose`; the result is a :class:`BodyEstimate`, the
+:class:`~.pose.PoseEstimate` a marker field gets, plus the tag bookkeeping.
+:func:`confusable_tags` tells which tags of two dictionaries a detector could mistake for
+one another (the tracker refuses bodies and fields that share tags).
 """
 
 from __future__ import annotations
@@ -27,16 +34,18 @@ import numbers
 import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from dataclasses import fields as dataclass_fields
 from types import MappingProxyType
 
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .camera import CameraModel
+from .camera import CameraModel, Rig
 from .errors import MarkerFieldError
 from .geometry import invert, make_transform, transform_points
 from .markers import aruco_dictionary
+from .pose import Observation, PoseEstimate, bundle_adjust
 
 #: Pose of OpenCV's single-marker frame (y up, z toward the camera) in the frame of a
 #: :func:`single_tag_body` tag (y down, z away): a half turn about x.
@@ -388,6 +397,14 @@ def _tag_errors(T: np.ndarray, obj: np.ndarray, img: np.ndarray,
     return np.where(np.isfinite(err), err, np.inf)
 
 
+def _tag_limits(tags_px: Iterable[np.ndarray], max_px: float, rel: float) -> np.ndarray:
+    """Per-tag agreement limit (px): the larger of ``max_px`` and ``rel`` times the tag's
+    mean side in the image."""
+    side_px = np.array([np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1).mean()
+                        for c in tags_px])
+    return np.maximum(max_px, rel * side_px)
+
+
 def _rows(idx: Iterable[int]) -> np.ndarray:
     return np.concatenate([np.arange(4 * i, 4 * i + 4) for i in idx])
 
@@ -439,9 +456,8 @@ def estimate_body_pose(body: RigidBody, tag_corners_px: TagCorners, camera: Came
         _, _, T = min(scored, key=lambda s: s[:2])
         inliers = [0]
     else:
-        side_px = np.array([np.linalg.norm(np.roll(seen_once[t], -1, axis=0) - seen_once[t],
-                                           axis=1).mean() for t in usable])
-        limit = np.maximum(max_tag_error_px, max_tag_error_rel * side_px)
+        limit = _tag_limits([seen_once[t] for t in usable], max_tag_error_px,
+                            max_tag_error_rel)
         found = _consensus(obj, img, camera, limit)
         if found is None:
             return None
@@ -517,3 +533,134 @@ def _consensus(obj: np.ndarray, img: np.ndarray, cam: CameraModel,
                   <= limit[inliers]):
         return None
     return T, inliers
+
+
+# -- over a rig --------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class BodyEstimate(PoseEstimate):
+    """A rigid body's pose in the rig's reference frame, from one frame's images.
+
+    The :class:`~.pose.PoseEstimate` a marker field gets, with the body in the place of the
+    field: ``T_ref_field`` is ``T_ref_body`` (4x4, m); ``corners`` counts the tag corners
+    used, 4 per tag and camera; ``covariance`` is that of ``[dt (m), dtheta (rad)]`` in the
+    reference frame, from the final Jacobian; ``per_camera`` rows index
+    ``body.corners()`` (every tag in id order, 4 rows each); ``method`` is ``"aruco"``.
+
+    Attributes:
+        tags_used: ids of the tags the pose was fitted to, in any camera, ascending.
+        tags_seen: ids of the body's tags detected (once in an image) by any camera.
+        quality: ``len(tags_seen) / len(body)``, the peer tracker's tracking quality.
+    """
+
+    tags_used: tuple[int, ...] = ()
+    tags_seen: tuple[int, ...] = ()
+    quality: float = 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class _BodyPoints:
+    """A body as a :class:`.pose.CornerModel`: every tag corner ((N, 3), body frame, m)."""
+
+    corners: np.ndarray
+
+
+def estimate_body(body: RigidBody, detections: Mapping[str, TagCorners], rig: Rig, *,
+                  max_tag_error_px: float = 4.0,
+                  max_tag_error_rel: float = 0.1) -> BodyEstimate | None:
+    """Pose of ``body`` in ``rig``'s reference frame from its tags in one or more cameras.
+
+    Each camera's tags are posed by :func:`estimate_body_pose`. The camera that keeps the
+    most tags (then the lowest RMS) gives the starting ``T_ref_body``; every other camera
+    adds the tags that agree with it (the limits of :func:`estimate_body_pose`), and the
+    pose is refined over all of them by :func:`.pose.bundle_adjust` (unweighted, no corner
+    rejection: the tag consensus already dropped the tags that disagree), which also gives
+    the covariance.
+
+    Args:
+        body: the rigid body.
+        detections: camera name -> that camera's detected tags, as for
+            :func:`estimate_body_pose` (other dictionaries' ids are simply not the body's).
+        rig: the cameras; ``T_ref_cam`` places each in the reference frame.
+        max_tag_error_px, max_tag_error_rel: the tag agreement limits.
+
+    Returns:
+        The estimate, or ``None`` when no camera gives the body a pose, or the joint
+        refinement fails (degenerate corners, the body behind a camera).
+
+    Raises:
+        MarkerFieldError: on malformed detections; CameraModelError: an unknown camera.
+    """
+    poses: dict[str, BodyPose] = {}
+    seen_px: dict[str, dict[int, np.ndarray]] = {}
+    for cam_name, dets in detections.items():
+        cam = rig[cam_name]
+        mine = {t: c for t, c in unique_tags(_image_corners(dets)).items() if t in body.tags}
+        if not mine:
+            continue
+        seen_px[cam_name] = mine
+        pose = estimate_body_pose(body, mine, cam, max_tag_error_px=max_tag_error_px,
+                                  max_tag_error_rel=max_tag_error_rel)
+        if pose is not None:
+            poses[cam_name] = pose
+    if not poses:
+        return None
+    start = max(poses, key=lambda c: (len(poses[c].tags_used), -poses[c].reproj_rms_px))
+    T0 = rig[start].T_ref_cam @ poses[start].T_cam_body
+
+    index = {t: k for k, t in enumerate(body.ids)}
+    obs: list[Observation] = []
+    used: set[int] = set()
+    for cam_name, mine in seen_px.items():
+        cam = rig[cam_name]
+        if cam_name == start:
+            ids = list(poses[start].tags_used)
+        else:
+            cand = [t for t in sorted(mine) if _image_area(mine[t]) >= MIN_IMAGE_AREA_PX2]
+            if not cand:
+                continue
+            errs = _tag_errors(cam.T_cam_ref @ T0, body.corners(cand),
+                               np.concatenate([mine[t] for t in cand]), cam)
+            limit = _tag_limits([mine[t] for t in cand], max_tag_error_px, max_tag_error_rel)
+            ids = [t for t, e, lim in zip(cand, errs, limit, strict=True) if e <= lim]
+        if not ids:
+            continue
+        rows = np.concatenate([4 * index[t] + np.arange(4) for t in ids])
+        obs.append(Observation(cam, rows, np.concatenate([mine[t] for t in ids])))
+        used.update(ids)
+    est = bundle_adjust(_BodyPoints(body.corners()), obs, T0, "none",
+                        reject_outliers=False, method="aruco")
+    if est is None:
+        return None
+    seen = sorted(set().union(*(set(m) for m in seen_px.values())))
+    base = {f.name: getattr(est, f.name) for f in dataclass_fields(PoseEstimate)}
+    return BodyEstimate(**base, tags_used=tuple(sorted(used)), tags_seen=tuple(seen),
+                        quality=len(seen) / len(body))
+
+
+# -- tags two detectors could confuse ----------------------------------------------------------
+def correction_bits(dictionary: str,
+                    params: cv2.aruco.DetectorParameters | None = None) -> int:
+    """Bits OpenCV's detector corrects in a tag of ``dictionary`` with ``params`` (the
+    :func:`detect_tags` defaults): ``int(maxCorrectionBits * errorCorrectionRate)``."""
+    p = default_detector_parameters() if params is None else params
+    return int(aruco_dictionary(dictionary).maxCorrectionBits * p.errorCorrectionRate)
+
+
+def confusable_tags(dictionary_a: str, ids_a: Iterable[int], dictionary_b: str,
+                    ids_b: Iterable[int], max_bits: int = 0) -> list[tuple[int, int]]:
+    """Pairs ``(id in a, id in b)`` whose codes differ in at most ``max_bits`` bits in some
+    rotation: a detector of one dictionary that corrects ``max_bits`` bits can read the
+    other's tag as its own (``max_bits = 0``: the same code, as ``DICT_4X4_50`` id 3 and
+    ``DICT_4X4_1000`` id 3). Dictionaries of different bit grids (4x4 and 5x5) give no
+    pairs: their codes do not compare, and the detector's grid separates them.
+    """
+    da, db = aruco_dictionary(dictionary_a), aruco_dictionary(dictionary_b)
+    a = [int(i) for i in ids_a]
+    b = [int(i) for i in ids_b]
+    if da.markerSize != db.markerSize or not a or not b:
+        return []
+    n = da.markerSize ** 2
+    bits_a = np.unpackbits(da.bytesList[a, :, 0], axis=-1)[:, :n]                # (A, n)
+    bits_b = np.unpackbits(db.bytesList[b].transpose(0, 2, 1), axis=-1)[..., :n]  # (B, 4, n)
+    dist = (bits_a[:, None, None, :] != bits_b[None]).sum(axis=-1).min(axis=-1)  # (A, B)
+    return [(a[i], b[j]) for i, j in zip(*np.nonzero(dist <= max_bits), strict=True)]

@@ -16,6 +16,11 @@ Search stages, per field (docs/tracking.md):
 
 ``mode`` caps the stage: ``"full"`` always searches the whole image, ``"roi"`` uses boxes,
 ``"predict"`` (default) tracks corners and falls back to boxes, then to the whole image.
+
+ArUco rigid bodies (:mod:`.rigid_body`, tags with known 3D corners) are tracked beside the
+fields: each frame, OpenCV's ArUco detector searches whole images once per body dictionary,
+and :func:`.rigid_body.estimate_body` poses each body over every camera that sees it. They
+keep no video state, and their estimates join the fields' under the bodies' names.
 """
 
 from __future__ import annotations
@@ -41,6 +46,7 @@ from .detection import (
     detect_fields,
     refine_corners,
 )
+from .errors import MarkerFieldError
 from .geometry import invert
 from .markers import MarkerField
 from .pose import (
@@ -50,6 +56,14 @@ from .pose import (
     corner_normals,
     estimate_pose,
     pose_covariance,
+)
+from .rigid_body import (
+    BodyEstimate,
+    RigidBody,
+    confusable_tags,
+    correction_bits,
+    detect_tag_list,
+    estimate_body,
 )
 
 Method = Literal["nvgba", "ba", "pnp", "opencv"]
@@ -78,6 +92,14 @@ class TrackerSettings:
             (angle between the surface normal and the line of sight); their refined
             positions are biased (0.5-0.8 px at 63 deg on the shipped cylinders).
         quads: settings of the marker search.
+        body_max_rms_px: a rigid body's estimate whose reprojection RMS exceeds this is not
+            reported (the peer's real bodies fit to 0.6-1.1 px: printed-tag model errors).
+        body_max_position_sigma_mm, body_max_rotation_sigma_deg: the covariance gate for
+            bodies. Looser than the fields': one 50 mm tag at 210 mm has up to 1.9 mm and
+            2.9 deg (peer output.avi), the peer's 12-tag reference 0.9 mm and 0.4 deg.
+        body_max_tag_error_px, body_max_tag_error_rel: a body's tag agrees with the others
+            when its RMS reprojection error is at most the larger of these (px, fraction of
+            its side in pixels); see :func:`.rigid_body.estimate_body_pose`.
     """
 
     max_rms_px: float = 1.0
@@ -90,6 +112,11 @@ class TrackerSettings:
     max_rotation_sigma_deg: float = 0.5
     max_obliquity_deg: float = 60.0
     quads: QuadParams = QuadParams()
+    body_max_rms_px: float = 2.0
+    body_max_position_sigma_mm: float = 5.0
+    body_max_rotation_sigma_deg: float = 5.0
+    body_max_tag_error_px: float = 4.0
+    body_max_tag_error_rel: float = 0.1
 
 
 @dataclass
@@ -158,6 +185,42 @@ def _interpolate_points_field(fld: MarkerField, flat: np.ndarray) -> np.ndarray:
     return out
 
 
+def _check_bodies(bodies: Sequence[RigidBody], fields: Sequence[MarkerField]
+                  ) -> dict[str, RigidBody]:
+    """The bodies by name, once checked against the fields and each other: distinct names,
+    and no tag that OpenCV's detector (with the error correction it applies to the body's
+    dictionary) could read as a field marker or as another body's tag."""
+    out: dict[str, RigidBody] = {}
+    field_names = {f.name for f in fields}
+    for b in bodies:
+        if not isinstance(b, RigidBody):
+            raise MarkerFieldError(f"bodies must be RigidBody objects, got {type(b).__name__}")
+        if b.name in field_names:
+            raise MarkerFieldError(f"rigid body {b.name!r} has the name of a marker field; "
+                                   "names must be unique across fields and bodies")
+        if b.name in out:
+            raise MarkerFieldError(f"rigid body name {b.name!r} is given twice")
+        bits = correction_bits(b.dictionary)
+        for f in fields:
+            pairs = confusable_tags(b.dictionary, b.ids, f.dictionary, f.marker_ids, bits)
+            if pairs:
+                t, m = pairs[0]
+                raise MarkerFieldError(
+                    f"rigid body {b.name!r}: tag {t} of {b.dictionary} reads as marker {m} "
+                    f"of field {f.name!r} ({f.dictionary}); {len(pairs)} such tag(s): use "
+                    "another dictionary or other ids for the body")
+        for other in out.values():
+            pairs = confusable_tags(b.dictionary, b.ids, other.dictionary, other.ids,
+                                    max(bits, correction_bits(other.dictionary)))
+            if pairs:
+                t, m = pairs[0]
+                raise MarkerFieldError(
+                    f"rigid bodies {b.name!r} and {other.name!r} share tags: {b.dictionary} "
+                    f"{t} reads as {other.dictionary} {m}")
+        out[b.name] = b
+    return out
+
+
 @dataclass
 class _FieldState:
     T: np.ndarray | None = None          # last reported T_ref_field
@@ -194,11 +257,21 @@ class Tracker:
         mode: ``"predict"`` (default), ``"roi"`` or ``"full"``.
         weighting: NVG-BA obliquity weighting (see :mod:`.pose`).
         settings: thresholds and search settings.
+        bodies: ArUco rigid bodies to track as well (``method``, ``mode`` and ``weighting``
+            do not apply to them). Their names must differ from the fields' and from each
+            other's, and no body tag may be one that a detector could read as a field
+            marker or another body's tag (:func:`.rigid_body.confusable_tags`), so bodies
+            use other dictionaries or ids than the fields. At least one field or body.
+
+    Raises:
+        ValueError: a bad method, mode or name; :class:`MarkerFieldError` (a ValueError)
+            for bodies whose names or tags collide with the fields' or each other's.
     """
 
     def __init__(self, rig: Rig, fields: Sequence[MarkerField], method: Method = "nvgba",
                  mode: Mode = "predict", weighting: Weighting = "cos",
-                 settings: TrackerSettings = TrackerSettings()):
+                 settings: TrackerSettings = TrackerSettings(),
+                 bodies: Sequence[RigidBody] = ()):
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
         if mode not in MODES:
@@ -206,8 +279,10 @@ class Tracker:
         names = [f.name for f in fields]
         if len(set(names)) != len(names):
             raise ValueError(f"field names must be unique, got {names}")
-        if not fields:
-            raise ValueError("a tracker needs at least one marker field")
+        bodies = list(bodies)
+        if not fields and not bodies:
+            raise ValueError("a tracker needs at least one marker field or rigid body")
+        self.bodies: dict[str, RigidBody] = _check_bodies(bodies, fields)
         self.rig = rig
         self.fields = {f.name: f for f in fields}
         self.method: Method = method
@@ -220,20 +295,33 @@ class Tracker:
         self._opencv: dict[str, cv2.aruco.CharucoDetector] = {}
         for d in {f.dictionary for f in fields}:
             decoder_for(d)  # build code tables now, not in the first frame
+        self._body_dictionaries = sorted({b.dictionary for b in bodies})
         self.last_timing = FrameTiming()
 
     @classmethod
-    def from_files(cls, rig_path: str | Path, fields_path: str | Path,
-                   method: Method = "nvgba", **kwargs) -> Tracker:
-        """Build a tracker from a rig TOML and a marker-field TOML (docs/formats.md)."""
+    def from_files(cls, rig_path: str | Path, fields_path: str | Path | None = None,
+                   method: Method = "nvgba", *,
+                   bodies: Sequence[RigidBody | str | Path | tuple[str, str | Path]] = (),
+                   body_dictionary: str = "DICT_ARUCO_ORIGINAL", **kwargs) -> Tracker:
+        """Build a tracker from a rig TOML, a marker-field TOML (docs/formats.md) and
+        rigid bodies.
+
+        ``fields_path`` may be ``None`` when ``bodies`` are given. Each body is a
+        :class:`RigidBody`, or a peer tag table (millimetres, read by
+        :func:`oralnav.config.rigid_bodies.load_rigid_body` with tags of
+        ``body_dictionary``): a path (the body is named after the file's stem) or a
+        ``(name, path)`` pair.
+        """
         # Imported here: config builds control objects, so control only reaches into it
         # for this convenience constructor.
         from oralnav.config.fields import load_fields
         from oralnav.config.rig import load_rig
+        from oralnav.config.rigid_bodies import load_rigid_bodies
 
         rig = load_rig(rig_path)
-        fields = load_fields(fields_path)
-        return cls(rig, list(fields.values()), method=method, **kwargs)
+        fields = load_fields(fields_path) if fields_path is not None else {}
+        return cls(rig, list(fields.values()), method=method,
+                   bodies=load_rigid_bodies(bodies, body_dictionary), **kwargs)
 
     def reset(self) -> None:
         """Forget every field's last pose: the next frame searches whole images."""
@@ -252,9 +340,11 @@ class Tracker:
         return out
 
     def track(self, images: Mapping[str, np.ndarray]) -> dict[str, PoseEstimate]:
-        """Estimate every field visible in ``images`` (``{camera name: mono8 image}``).
+        """Estimate every field and body visible in ``images`` (``{camera name: mono8
+        image}``).
 
-        Returns ``{field name: PoseEstimate}``; fields not found are absent. Raises
+        Returns ``{field or body name: PoseEstimate}`` (a body's is a
+        :class:`.rigid_body.BodyEstimate`); those not found are absent. Raises
         :class:`DetectionError` for an unknown camera or an image of the wrong size/dtype.
         """
         t0 = time.perf_counter()
@@ -271,6 +361,8 @@ class Tracker:
                 st.T = st.T_prev = None
             else:
                 st.T_prev, st.T = st.T, est.T_ref_field
+        if self.bodies:
+            out.update(self._track_bodies(imgs, timing))
         timing.total = (time.perf_counter() - t0) * 1e3
         self.last_timing = timing
         return out
@@ -285,13 +377,8 @@ class Tracker:
 
     def _accept(self, est: PoseEstimate | None) -> PoseEstimate | None:
         s = self.settings
-        if (est is None or est.corners < s.min_corners
-                or not np.isfinite(est.reproj_rms_px) or est.reproj_rms_px > s.max_rms_px
-                or not np.all(np.isfinite(est.covariance))):
-            return None
-        rot_var = float(np.max(np.linalg.eigvalsh(est.covariance[3:, 3:])))
-        if (est.position_sigma_m * 1e3 > s.max_position_sigma_mm
-                or np.degrees(np.sqrt(max(rot_var, 0.0))) > s.max_rotation_sigma_deg):
+        if est is None or not est.within(s.max_rms_px, s.max_position_sigma_mm,
+                                         s.max_rotation_sigma_deg, s.min_corners):
             return None
         return est
 
@@ -378,6 +465,37 @@ class Tracker:
         refit = estimate_pose(model.field, obs, method, self.weighting, model.normals,
                               T_guess=est.T_ref_field)
         return est if refit is None else refit
+
+    # -- rigid bodies ----------------------------------------------------------------------
+    def _track_bodies(self, imgs: dict[str, np.ndarray], timing: FrameTiming
+                      ) -> dict[str, BodyEstimate]:
+        """Every body in whole images: one detector pass per dictionary and camera, then a
+        pose per body over the cameras (:func:`.rigid_body.estimate_body`)."""
+        s = self.settings
+        t = time.perf_counter()
+        found = {d: {cam: detect_tag_list(img, d) for cam, img in imgs.items()}
+                 for d in self._body_dictionaries}
+        t1 = time.perf_counter()
+        timing.recognition += (t1 - t) * 1e3
+        out: dict[str, BodyEstimate] = {}
+        for name, body in self.bodies.items():
+            est = self._accept_body(estimate_body(
+                body, found[body.dictionary], self.rig,
+                max_tag_error_px=s.body_max_tag_error_px,
+                max_tag_error_rel=s.body_max_tag_error_rel))
+            if est is not None:
+                out[name] = est
+                timing.stages[name] = "full"
+        timing.pose += (time.perf_counter() - t1) * 1e3
+        return out
+
+    def _accept_body(self, est: BodyEstimate | None) -> BodyEstimate | None:
+        """The fields' rules with the bodies' limits (no corner minimum: one tag has 4)."""
+        s = self.settings
+        if est is None or not est.within(s.body_max_rms_px, s.body_max_position_sigma_mm,
+                                         s.body_max_rotation_sigma_deg):
+            return None
+        return est
 
     # -- ROI (eqs. 18-19) -----------------------------------------------------------------
     def roi_boxes(self, name: str, T_ref_field: np.ndarray) -> dict[str, tuple[int, int, int, int]]:

@@ -5,6 +5,8 @@
     oralnav config check [FILE] [--json]
     oralnav track --rig RIG --fields FIELDS --image NAME=PATH [...] [--method M] [--json]
     oralnav track --rig RIG --fields FIELDS --replay NAME=SOURCE [...] [--mode M] [--json]
+    oralnav track --calibration NAME=calibration.txt [--fields FIELDS] [--body NAME=PATH ...]
+                  [--tag NAME=DICT:ID:SIDE_MM ...] --replay NAME=VIDEO [--frames N] [--json]
     oralnav bench navigation [--quick] --out DIR
 
 Every ``--json`` prints exactly one JSON object on stdout; progress and logs go to stderr.
@@ -137,15 +139,69 @@ def cmd_config_check(args: argparse.Namespace) -> int:
 
 
 # -- oralnav track --------------------------------------------------------------------
-def _named_paths(items: Sequence[str], option: str) -> dict[str, Path]:
+def _named_paths(items: Sequence[str], option: str, what: str = "camera") -> dict[str, Path]:
     out: dict[str, Path] = {}
     for item in items:
         name, sep, path = item.partition("=")
         if not sep or not name or not path:
             raise UsageError(f"{option} expects NAME=PATH, got {item!r}")
         if name in out:
-            raise UsageError(f"{option}: camera {name!r} given twice")
+            raise UsageError(f"{option}: {what} {name!r} given twice")
         out[name] = Path(path)
+    return out
+
+
+def _calibration_rig(items: Sequence[str], images: dict[str, Any] | None,
+                     sources: dict[str, Path] | None):
+    """A one-camera rig from ``--calibration NAME=FILE`` (scikit-surgery calibration.txt);
+    the camera is the reference frame, and its image size is that of its first image."""
+    from oralnav.config.rigid_bodies import load_calibration_txt
+    from oralnav.control.camera import Rig
+    from oralnav.drivers.camera.replay import read_frame
+    from oralnav.drivers.errors import DriverError
+
+    cal = _named_paths(items, "--calibration")
+    if len(cal) != 1:
+        raise UsageError("--calibration builds a one-camera rig: give it once "
+                         "(use --rig RIG for several cameras)")
+    ((name, path),) = cal.items()
+    option = "--image" if images is not None else "--replay"
+    given = images if images is not None else sources
+    if not given or name not in given:
+        raise UsageError(f"--calibration names camera {name!r}, but no {option} "
+                         f"{name}=... is given")
+    if images is not None:
+        h, w = images[name].shape[:2]
+    else:
+        try:
+            h, w = read_frame(given[name], 0).shape[:2]
+        except DriverError as exc:
+            raise UsageError(str(exc)) from exc
+    return Rig(name, {name: load_calibration_txt(path, (w, h), name=name)})
+
+
+def _tag_bodies(items: Sequence[str]) -> list:
+    """One-tag bodies from ``--tag NAME=DICT:ID:SIDE_MM``."""
+    from oralnav.control.errors import MarkerFieldError
+    from oralnav.control.rigid_body import single_tag_body
+
+    out = []
+    for item in items:
+        name, sep, spec = item.partition("=")
+        parts = spec.split(":")
+        if not sep or not name or len(parts) != 3:
+            raise UsageError(f"--tag expects NAME=DICT:ID:SIDE_MM (e.g. "
+                             f"tag=DICT_4X4_50:0:50), got {item!r}")
+        dictionary, tag_id, side = parts
+        try:
+            tid, side_mm = int(tag_id), float(side)
+        except ValueError:
+            raise UsageError(f"--tag {item!r}: ID must be a whole number and SIDE_MM a "
+                             "length in millimetres") from None
+        try:
+            out.append(single_tag_body(tid, side_mm * 1e-3, dictionary, name=name))
+        except MarkerFieldError as exc:
+            raise UsageError(f"--tag {item!r}: {exc}") from None
     return out
 
 
@@ -159,37 +215,69 @@ def _read_mono(path: Path, camera: str) -> Any:
 
 
 def _estimate_doc(est) -> dict[str, Any]:
-    return {"T_ref_field": [[round(float(v), 9) for v in row] for row in est.T_ref_field],
-            "corners": est.corners, "reproj_rms_px": round(est.reproj_rms_px, 4),
-            "cameras": list(est.cameras),
-            "position_sigma_mm": round(est.position_sigma_m * 1e3, 5)}
+    doc = {"T_ref_field": [[round(float(v), 9) for v in row] for row in est.T_ref_field],
+           "corners": est.corners, "reproj_rms_px": round(est.reproj_rms_px, 4),
+           "cameras": list(est.cameras),
+           "position_sigma_mm": round(est.position_sigma_m * 1e3, 5)}
+    if hasattr(est, "tags_seen"):  # a rigid body's BodyEstimate
+        doc.update(method=est.method, tags_seen=list(est.tags_seen),
+                   tags_used=list(est.tags_used), quality=round(est.quality, 5))
+    return doc
+
+
+def _frame_doc(tracker, est: dict[str, Any]) -> dict[str, Any]:
+    """One frame's estimates: marker fields under "fields", rigid bodies under "bodies"
+    (same keys, plus method, tags_seen, tags_used, quality), and the timing in ms."""
+    t = tracker.last_timing
+    return {"fields": {n: _estimate_doc(e) for n, e in est.items() if n in tracker.fields},
+            "bodies": {n: _estimate_doc(e) for n, e in est.items() if n in tracker.bodies},
+            "timing_ms": {k: round(v, 3) for k, v in t.as_dict().items() if k != "stages"}}
+
+
+def _found(est: dict[str, Any]) -> str:
+    return ", ".join(f"{n} {len(e.tags_used)} tag(s)" if hasattr(e, "tags_used")
+                     else f"{n} {e.corners} corners" for n, e in est.items()) or "nothing found"
 
 
 def cmd_track(args: argparse.Namespace) -> int:
+    from oralnav.config.rig import load_rig
+    from oralnav.config.rigid_bodies import load_rigid_bodies
     from oralnav.control.tracker import Tracker
 
     if bool(args.image) == bool(args.replay):
         raise UsageError("give either --image NAME=PATH (one frame) or --replay NAME=SOURCE")
-    tracker = Tracker.from_files(args.rig, args.fields, method=args.method, mode=args.mode)
+    if bool(args.rig) == bool(args.calibration):
+        raise UsageError("give either --rig RIG or --calibration NAME=FILE (one camera)")
+    images = sources = None
     if args.image:
         images = {c: _read_mono(p, c) for c, p in _named_paths(args.image, "--image").items()}
+    else:
+        sources = _named_paths(args.replay, "--replay")
+    rig = load_rig(args.rig) if args.rig else _calibration_rig(args.calibration, images,
+                                                                sources)
+    fields = list(load_fields(args.fields).values()) if args.fields else []
+    bodies = load_rigid_bodies(
+        _named_paths(args.body, "--body", "body").items(), args.body_dictionary)
+    bodies += _tag_bodies(args.tag)
+    if not fields and not bodies:
+        raise UsageError("nothing to track: give --fields FIELDS, --body NAME=PATH or "
+                         "--tag NAME=DICT:ID:SIDE_MM")
+    tracker = Tracker(rig, fields, method=args.method, mode=args.mode, bodies=bodies)
+    if images is not None:
         est = tracker.track(images)
         t = tracker.last_timing
-        doc = {"fields": {n: _estimate_doc(e) for n, e in est.items()},
-               "timing_ms": {k: round(v, 3) for k, v in t.as_dict().items() if k != "stages"}}
         lines = [f"{n}: {e.corners} corners, rms {e.reproj_rms_px:.3f} px, t = "
                  + " ".join(f"{v * 1e3:.3f}" for v in e.T_ref_field[:3, 3]) + " mm"
-                 for n, e in est.items()] or ["no field found"]
-        _emit(args, doc, "\n".join(lines + [f"total {t.total:.1f} ms"]))
+                 for n, e in est.items()] or ["nothing found"]
+        _emit(args, _frame_doc(tracker, est), "\n".join(lines + [f"total {t.total:.1f} ms"]))
         return 0
-    return _track_replay(args, tracker)
+    return _track_replay(args, tracker, sources)
 
 
-def _track_replay(args: argparse.Namespace, tracker) -> int:
+def _track_replay(args: argparse.Namespace, tracker, sources: dict[str, Path]) -> int:
     from oralnav.drivers.camera.replay import frame_count, read_frame
     from oralnav.drivers.errors import DriverError
 
-    sources = _named_paths(args.replay, "--replay")
     try:
         counts = {c: frame_count(p) for c, p in sources.items()}
     except DriverError as exc:
@@ -204,13 +292,11 @@ def _track_replay(args: argparse.Namespace, tracker) -> int:
         except DriverError as exc:
             raise UsageError(str(exc)) from exc
         est = tracker.track(images)
-        frames.append({"frame": k, "fields": {f: _estimate_doc(e) for f, e in est.items()},
-                       "timing_ms": round(tracker.last_timing.total, 3),
+        frames.append({"frame": k, **_frame_doc(tracker, est),
                        "stages": dict(tracker.last_timing.stages)})
         if not args.json or (k + 1) % 25 == 0:
-            _progress(f"frame {k + 1}/{n}: " + (", ".join(
-                f"{f} {e.corners} corners" for f, e in est.items()) or "no field found"))
-    times = [f["timing_ms"] for f in frames]
+            _progress(f"frame {k + 1}/{n}: {_found(est)}")
+    times = [f["timing_ms"]["total"] for f in frames]
     doc = {"frames": frames, "timing_ms": {
         "median": round(float(sorted(times)[len(times) // 2]), 3) if times else None}}
     _emit(args, doc, f"tracked {n} frame(s); median {doc['timing_ms']['median']} ms per frame")
@@ -257,9 +343,23 @@ def build_parser() -> argparse.ArgumentParser:
     ck.add_argument("--json", action="store_true", help="print one JSON object")
     ck.set_defaults(func=cmd_config_check)
 
-    tk = sub.add_parser("track", help="estimate marker-field poses in images or recordings")
-    tk.add_argument("--rig", required=True, help="rig TOML (cameras, reference frame)")
-    tk.add_argument("--fields", required=True, help="marker-field TOML")
+    tk = sub.add_parser("track", help="estimate marker-field and rigid-body poses in images "
+                                      "or recordings")
+    tk.add_argument("--rig", help="rig TOML (cameras, reference frame)")
+    tk.add_argument("--calibration", action="append", default=[], metavar="NAME=FILE",
+                    help="instead of --rig: one camera from a scikit-surgery calibration.txt "
+                         "(3 lines of K, 1 of distortion; pixels), the reference frame; its "
+                         "image size is that of its first image")
+    tk.add_argument("--fields", help="marker-field TOML (optional with --body or --tag)")
+    tk.add_argument("--body", action="append", default=[], metavar="NAME=PATH",
+                    help="an ArUco rigid body: a scikit-surgery tag table (tag id, centre, "
+                         "4 corners; millimetres) of --body-dictionary tags (repeat per body)")
+    tk.add_argument("--body-dictionary", default="DICT_ARUCO_ORIGINAL", metavar="DICT",
+                    help="OpenCV dictionary of the --body tables' tags "
+                         "(default DICT_ARUCO_ORIGINAL, the peer's)")
+    tk.add_argument("--tag", action="append", default=[], metavar="NAME=DICT:ID:SIDE_MM",
+                    help="a one-tag body, e.g. tag=DICT_4X4_50:0:50; its frame is at the tag "
+                         "centre, x right and y down on the print, z away from the camera")
     tk.add_argument("--image", action="append", default=[], metavar="NAME=PATH",
                     help="one camera's image of a single frame (repeat per camera)")
     tk.add_argument("--replay", action="append", default=[], metavar="NAME=SOURCE",

@@ -32,12 +32,8 @@ from oralnav.drivers.errors import (
     EndOfStream,
 )
 
-PEER = Path(__file__).resolve().parents[2].parent / "shared" / "peer-data"
-ARUCO = PEER / "sksurgery-arucotracker"
-needs_peer = pytest.mark.skipif(
-    not ARUCO.is_dir(),
-    reason=f"peer data folder {ARUCO} is absent (CI has it at ../shared/peer-data)",
-)
+from ..helpers import ARUCO_DATA as ARUCO
+from ..helpers import needs_aruco_data
 
 #: name -> (decodable frames, frames per second in the file)
 PEER_VIDEOS = {"output.avi": (10, 10.0), "multipattern.avi": (10, 30.0), "12markers.avi": (1, 30.0)}
@@ -87,7 +83,7 @@ async def _read_all(cam: Camera) -> list[CameraFrame]:
 # -- peer videos ---------------------------------------------------------------------------
 
 
-@needs_peer
+@needs_aruco_data
 @pytest.mark.parametrize("name", sorted(PEER_VIDEOS))
 async def test_peer_videos_play_every_frame_as_mono8(name):
     """A real video plays all its decodable frames as 640x480 mono8, stamped i / file fps,
@@ -108,7 +104,7 @@ async def test_peer_videos_play_every_frame_as_mono8(name):
         assert frame.timestamp == pytest.approx(i / fps)
 
 
-@needs_peer
+@needs_aruco_data
 @pytest.mark.parametrize("name", sorted(PEER_VIDEOS))
 def test_peer_frame_count_helper(name):
     """frame_count() counts decodable frames, not the container header (multipattern.avi's
@@ -116,7 +112,7 @@ def test_peer_frame_count_helper(name):
     assert frame_count(ARUCO / name) == PEER_VIDEOS[name][0]
 
 
-@needs_peer
+@needs_aruco_data
 async def test_output_avi_frame_1_equals_videocapture():
     """Frame index 1 of output.avi equals what cv2.VideoCapture gives directly: BGR as is,
     mono as its BGR2GRAY conversion; read_frame and the camera agree."""
@@ -134,7 +130,7 @@ async def test_output_avi_frame_1_equals_videocapture():
     np.testing.assert_array_equal(second.image, expected_mono)
 
 
-@needs_peer
+@needs_aruco_data
 async def test_video_random_access_start_frame_and_loop_match_sequential_decoding():
     """start_frame, read_frame(index) and loop passes deliver exactly the frames a sequential
     VideoCapture decodes, including the last frame of a file whose header overcounts."""
@@ -151,7 +147,7 @@ async def test_video_random_access_start_frame_and_loop_match_sequential_decodin
     assert got[3].timestamp == pytest.approx(got[0].timestamp + 3 / 30)
 
 
-@needs_peer
+@needs_aruco_data
 async def test_single_frame_h264_video_loops():
     """A one-frame video (12markers.avi) loops: same image, counter and timestamp advance."""
     async with ReplayCamera(ARUCO / "12markers.avi", loop=True) as cam:
@@ -162,7 +158,7 @@ async def test_single_frame_h264_video_loops():
         np.testing.assert_array_equal(frame.image, frames[0].image)
 
 
-@needs_peer
+@needs_aruco_data
 async def test_fps_argument_overrides_video_rate():
     """The fps argument sets a video's timestamps (i / fps) instead of the file's rate."""
     async with ReplayCamera(ARUCO / "output.avi", fps=50) as cam:

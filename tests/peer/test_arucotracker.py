@@ -8,8 +8,6 @@ as test properties (``--junitxml``).
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
@@ -23,34 +21,10 @@ from oralnav.control.rigid_body import (
     single_tag_body,
 )
 
-PEER = Path(__file__).resolve().parents[2].parent / "shared" / "peer-data"
-ARUCO = PEER / "sksurgery-arucotracker"
+from ..helpers import ARUCO_DATA as ARUCO
+from ..helpers import PEER_REFERENCE_MM, PEER_TAG0_MM, mm_to_m, needs_aruco_data
 
-pytestmark = pytest.mark.skipif(
-    not ARUCO.is_dir(), reason=f"peer data folder {ARUCO} is absent (CI provides it)")
-
-#: The peer's regression pose of tag DICT_4X4_50:0 in output.avi frame index 1 (camera
-#: frame, OpenCV single-marker convention), millimetres.
-PEER_TAG0_MM = np.array([
-    [0.99928828, -0.02261964, 0.03018762, 17.609988],
-    [-0.02280416, -0.99972323, 0.00578211, 25.085676],
-    [0.03004847, -0.00646639, -0.99952753, 210.36779],
-    [0.0, 0.0, 0.0, 1.0]])
-
-#: The peer's regression pose of ``reference`` in multipattern.avi frame 0 with
-#: calibration.txt (its tests test_with_tool_desc_and_calib / test_tool_desc_and_float64),
-#: millimetres, checked there within 5 mm over a 500 mm cube.
-PEER_REFERENCE_MM = np.array([
-    [-0.84701057, 0.51884094, -0.11565978, -82.2903442],
-    [-0.48733129, -0.67100208, 0.55880625, 48.5032501],
-    [0.21232361, 0.52967943, 0.82119327, 243.992401],
-    [0.0, 0.0, 0.0, 1.0]])
-
-
-def _mm_to_m(T_mm: np.ndarray) -> np.ndarray:
-    T = T_mm.copy()
-    T[:3, 3] *= 1e-3
-    return T
+pytestmark = needs_aruco_data
 
 
 def _frame(video: str, index: int) -> np.ndarray:
@@ -91,7 +65,7 @@ def test_single_tag_pose_matches_peer(record_property):
     pose = estimate_body_pose(single_tag_body(0, 0.050, "DICT_4X4_50"), tags, cam)
     assert pose is not None and pose.quality == 1.0
     T_cam_marker = pose.T_cam_body @ T_TAG_OPENCV_MARKER
-    dt, dr = pose_error(T_cam_marker, _mm_to_m(PEER_TAG0_MM))
+    dt, dr = pose_error(T_cam_marker, mm_to_m(PEER_TAG0_MM))
     z_mm = T_cam_marker[2, 3] * 1e3
     figures = {"translation_diff_mm": dt * 1e3, "rotation_diff_deg": np.degrees(dr),
                "z_mm": z_mm, "reproj_rms_px": pose.reproj_rms_px}
@@ -115,7 +89,7 @@ def test_single_tag_pose_with_peer_detector_settings(record_property):
     tags = detect_tags(frame, "DICT_4X4_50", params)
     pose = estimate_body_pose(single_tag_body(0, 0.050, "DICT_4X4_50"), tags, _camera(frame))
     assert pose is not None
-    dt, dr = pose_error(pose.T_cam_body @ T_TAG_OPENCV_MARKER, _mm_to_m(PEER_TAG0_MM))
+    dt, dr = pose_error(pose.T_cam_body @ T_TAG_OPENCV_MARKER, mm_to_m(PEER_TAG0_MM))
     record_property("peer_settings_translation_diff_mm", round(dt * 1e3, 5))
     record_property("peer_settings_rotation_diff_deg", round(float(np.degrees(dr)), 5))
     print(f"\npeer settings: {dt * 1e3:.4f} mm, {np.degrees(dr):.4f} deg from the peer")
@@ -168,7 +142,7 @@ def test_multipattern_reference_pose_matches_peer(record_property):
     pose = estimate_body_pose(reference, detect_tags(frame, "DICT_ARUCO_ORIGINAL"),
                               _camera(frame))
     assert pose is not None
-    dt, dr = pose_error(pose.T_cam_body, _mm_to_m(PEER_REFERENCE_MM))
+    dt, dr = pose_error(pose.T_cam_body, mm_to_m(PEER_REFERENCE_MM))
     T_mm = pose.T_cam_body.copy()
     T_mm[:3, 3] *= 1e3
     cube = _peer_cube_error(T_mm, PEER_REFERENCE_MM)
