@@ -234,6 +234,11 @@ def pnp_camera(points: np.ndarray, px: np.ndarray, camera: CameraModel,
                ransac_px: float = 3.0) -> tuple[np.ndarray, np.ndarray] | None:
     """Pose of the field in one camera (``T_cam_field``) by RANSAC PnP, and the inlier mask.
 
+    RANSAC runs AP3P on minimal sets only to find the inliers; SQPnP then solves all of
+    them and Levenberg-Marquardt refines, and the inliers are re-read from that pose.
+    RANSAC with SQPnP inside (OpenCV 5.0) was measured failing on planar fields turned
+    50-70 deg away: 12 of 54 exact corners kept at 50 deg, a pose 127 deg off at 60 and
+    an exception at 70 (OpenCV issue 27098 reports wrong planar RANSAC poses since 4.7).
     Returns ``None`` for a degenerate corner set or when fewer than 4 inliers remain.
     """
     if _degenerate(points, px):
@@ -243,17 +248,28 @@ def pnp_camera(points: np.ndarray, px: np.ndarray, camera: CameraModel,
     try:
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
             obj, img, camera.K, camera.dist, iterationsCount=100,
-            reprojectionError=ransac_px, confidence=0.999, flags=cv2.SOLVEPNP_SQPNP)
+            reprojectionError=ransac_px, confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
+        if not ok or inl is None or len(inl) < 4:
+            return None
+        mask = np.zeros(len(points), dtype=bool)
+        mask[inl.ravel()] = True
+        if _degenerate(points[mask], px[mask]):
+            return None
+        for _ in range(2):
+            ok, rvec, tvec = cv2.solvePnP(obj[mask], img[mask], camera.K, camera.dist,
+                                          flags=cv2.SOLVEPNP_SQPNP)
+            if not ok:
+                return None
+            rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], camera.K, camera.dist,
+                                              rvec, tvec)
+            uv, _ = cv2.projectPoints(obj, rvec, tvec, camera.K, camera.dist)
+            again = np.linalg.norm(uv.reshape(-1, 2) - px, axis=1) < ransac_px
+            if again.sum() < 4 or np.array_equal(again, mask):
+                break
+            mask = again
     except cv2.error:
         return None
-    if not ok or inl is None or len(inl) < 4:
-        return None
-    mask = np.zeros(len(points), dtype=bool)
-    mask[inl.ravel()] = True
-    try:
-        rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], camera.K, camera.dist,
-                                          rvec, tvec)
-    except cv2.error:
+    if mask.sum() < 4:
         return None
     T = np.eye(4)
     T[:3, :3] = Rotation.from_rotvec(rvec.ravel()).as_matrix()

@@ -25,9 +25,12 @@ from oralnav.control.detection import (
     decoder_for,
     detect_fields,
     find_quads,
+    predict_board,
     predict_corners,
     refine_corners,
     square_to_quad,
+    x_junction_ok,
+    x_junction_scores,
 )
 from oralnav.control.errors import ControlError
 from oralnav.control.geometry import transform_from_euler
@@ -385,6 +388,38 @@ def test_predict_corners_through_marker_homographies():
     assert all(len(a) == 0 for a in none)
 
 
+
+def test_predict_board_axes_and_colouring():
+    """Detection step 3: with each predicted corner come the image vectors of one square
+    along the sheet's x and y (the homography's derivative there) and which diagonal
+    holds the light squares, as printed on the board image."""
+    layout = BoardLayout.of(BOARD)
+    H = np.array([[9000.0, 1500.0, 200.0], [-800.0, 8500.0, 150.0], [3.0, -2.0, 1.0]])
+
+    def to_px(p):
+        q = np.concatenate([p, np.ones(p.shape[:-1] + (1,))], axis=-1) @ H.T
+        return q[..., :2] / q[..., 2:]
+
+    quads = [Quad(int(BOARD.first_id + m), to_px(layout.marker_flat[m]))
+             for m in range(BOARD.marker_count)]
+    pr = predict_board(BOARD, layout, quads)
+    ids, px, sq, used = predict_corners(BOARD, layout, quads)
+    np.testing.assert_array_equal(pr.ids, ids)
+    np.testing.assert_array_equal(pr.px, px)
+    xy = BOARD.corners_flat[pr.ids]
+    h = 1e-7 * BOARD.square
+    for k, step in enumerate(([h, 0.0], [0.0, h])):
+        step = np.array(step)
+        deriv = (to_px(xy + step) - to_px(xy - step)) / (2 * h) * BOARD.square
+        np.testing.assert_allclose(pr.axes[:, k], deriv, rtol=1e-5, atol=1e-6)
+    per_square = 100
+    sheet = BOARD.board_image(per_square)
+    # the square toward +x+y of each corner, sampled on the printed sheet just inside its
+    # corner (its centre may hold a marker's dark bits)
+    inside = ((xy / BOARD.square + 0.05) * per_square).astype(int)
+    light = sheet[inside[:, 1], inside[:, 0]] > 127
+    np.testing.assert_array_equal(pr.light_diagonal, np.where(light, 1.0, -1.0))
+
 # -- rendered fields ------------------------------------------------------------------------
 PLANE = MarkerField("plane", "DICT_4X4_1000", (10, 7), 0.004, 0.003, first_id=0)
 CYLINDER = MarkerField("cyl", "DICT_4X4_1000", (12, 9), 0.003, 0.0022, first_id=100,
@@ -507,20 +542,13 @@ def occluded() -> tuple:
     return scene, SceneRenderer(scene).render()
 
 
-@pytest.mark.parametrize("camera", [
-    "left",
-    pytest.param("right", marks=pytest.mark.xfail(strict=True, reason=(
-        "detect_fields reports opener corner 15 in the right camera although the "
-        "instrument shaft hides it (ground truth lists it as not visible): the refined "
-        "point sits on the shaft's edge, 1.9 px from the true corner; refine_corners "
-        "accepts any move under 0.35 square and nothing checks the X-junction's "
-        "symmetry"))),
-])
+@pytest.mark.parametrize("camera", ["left", "right"])
 def test_occluded_fields_give_correct_corners_only(occluded, camera):
     """Detection under occlusion (stereo_occluded scene: a shaft across the opener, a blot
     on the robot field, a motion-blurred end-effector): every corner reported is visible
     in ground truth and within 1 px of it (median 0.1 px); the partly covered fields are
-    still found."""
+    still found. In the right camera the shaft hides opener corner 15, and the refined
+    point sits on the shaft's edge 1.9 px from it: the X-junction check drops it."""
     scene, fr = occluded
     fields = [p.field for p in scene.placements]
     found = detect_fields(fr.images[camera], fields)
@@ -536,3 +564,137 @@ def test_occluded_fields_give_correct_corners_only(occluded, camera):
     under = {int(i) for i, xy in zip(robot.corner_ids, robot.corners_flat, strict=True)
              if np.hypot(*(xy - np.asarray(blot.center))) <= blot.radius}
     assert under and not under & set(found["robot"].ids.tolist())
+
+
+
+# -- corner checks ---------------------------------------------------------------------------
+CHESS_SQUARE = 24  # px
+
+
+def _chessboard(n: int = 6, margin: int = 20) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A blurred n x n chessboard whose top-left square is dark. Returns the image, its
+    inner corners (pixel-centre convention) and their light diagonals (+1: light toward
+    +x+y)."""
+    img = np.full((n * CHESS_SQUARE + 2 * margin,) * 2, 200, np.uint8)
+    for r in range(n):
+        for c in range(n):
+            if (r + c) % 2 == 0:
+                img[margin + r * CHESS_SQUARE:margin + (r + 1) * CHESS_SQUARE,
+                    margin + c * CHESS_SQUARE:margin + (c + 1) * CHESS_SQUARE] = 30
+    img = cv2.GaussianBlur(img, (0, 0), 1.0)
+    g = margin + np.arange(1, n) * CHESS_SQUARE - 0.5
+    gx, gy = np.meshgrid(g, g)
+    col, row = np.meshgrid(np.arange(1, n), np.arange(1, n))
+    light = np.where((col + row) % 2 == 1, 1.0, -1.0).ravel()  # square (col, row) is light
+    return img, np.stack([gx.ravel(), gy.ravel()], axis=1), light
+
+
+def test_refine_corners_flags_a_window_that_gave_up():
+    """Detection step 3, corners sub-pixel or dropped (issue 3, stability where methods
+    fail): ``cornerSubPix`` hands back its starting point unchanged when it converges
+    further away than its window (3 px here); such a start, 3.5-7 px from the corner, was
+    reported as refined. It is flagged now, while a start 1 px off still snaps to the
+    corner."""
+    img, corners, _ = _chessboard()
+    c = corners[7]
+    sq = np.array([float(CHESS_SQUARE)])
+    for d in ([3.5, 0.5], [5.0, 0.0], [0.0, 6.0], [3.5, 3.5], [7.0, 2.0]):
+        px, ok = refine_corners(img, c + np.array([d]), sq)
+        assert not ok[0], (d, px)
+    px, ok = refine_corners(img, c + np.array([[0.8, -0.6]]), sq)
+    assert ok[0] and np.linalg.norm(px[0] - c) < 0.05
+
+
+def test_x_junction_check_rejects_edges_marker_corners_and_wrong_colouring():
+    """Detection step 3, corners sub-pixel or dropped (issue 3, stability where methods
+    fail): refined points are kept only if they look like the chessboard corner they are
+    meant to be. Every true corner passes; a point on an edge, in a square, at the corner
+    of a marker-like dark patch (three squares of one shade) and a true corner with the
+    colouring of its neighbour one square over (an identity one square off) all fail."""
+    img, corners, light = _chessboard()
+    # a dark "marker" inside the light square right of corner 7, 5 px from its corner
+    c7 = corners[7]
+    x0, y0 = int(c7[0] + 5.5), int(c7[1] + 5.5 - CHESS_SQUARE)
+    img[y0:y0 + 12, x0:x0 + 12] = 30
+    img = cv2.GaussianBlur(img, (0, 0), 0.7)
+    axes = np.tile(np.eye(2) * CHESS_SQUARE, (len(corners), 1, 1))
+    assert x_junction_ok(img, corners, axes, light).all()
+    contrast, asym = x_junction_scores(img, corners, axes, light)
+    assert np.all(contrast > 100) and np.all(asym.min(axis=1) < 10)
+    marker_corner = np.array([x0 - 0.5, y0 + 11.5])  # its bottom-left corner
+    bad = np.array([c7 + [CHESS_SQUARE / 2, 0], c7 + [CHESS_SQUARE / 2] * 2, marker_corner,
+                    c7])
+    bad_light = np.array([light[7], light[7], -1.0, -light[7]])
+    px = np.concatenate([corners, bad])
+    ok = x_junction_ok(img, px, np.tile(np.eye(2) * CHESS_SQUARE, (len(px), 1, 1)),
+                       np.concatenate([light, bad_light]))
+    assert ok[:len(corners)].all()
+    assert not ok[len(corners):].any(), ok[len(corners):]
+
+
+# -- grazing views (the benchmark's viewing-angle sweep) -------------------------------------
+def _turned(angle_deg: float) -> np.ndarray:
+    """The robot field's pose in the benchmark's viewing-angle sweep: 220 mm ahead, turned
+    ``angle_deg`` about its y axis (reference = left camera frame)."""
+    return transform_from_euler([-0.025, -0.0175, 0.22], [0, angle_deg, 0])
+
+
+@pytest.fixture(scope="module")
+def grazing() -> tuple[SceneRenderer, MarkerField]:
+    """The simulated cell's robot field (10 x 7 squares of 5 mm, DICT_4X4_1000) alone in
+    the left camera, with the cell's imaging (blur, noise, illumination gradient)."""
+    scene = load_scene(ROOT / "config" / "examples" / "stereo_cell.toml")
+    robot = scene.placement("robot").field
+    rig = replace(scene.rig, cameras={"left": scene.rig["left"]})
+    sc = replace(scene, rig=rig, placements=(Placement("robot", robot, _turned(0)),),
+                 rods=(), blots=())
+    r = SceneRenderer(sc)
+    r.prepare()
+    return r, robot
+
+
+@pytest.mark.parametrize("frame", [0, 1])
+def test_robot_field_at_70_degrees(grazing, frame):
+    """Detection, partial views and stability where methods fail (issue 3): the robot
+    plane turned 70 deg from the camera (75 deg between its normal and the line of sight;
+    the markers are 10-15 px wide for 40-50 px high, their bit cells under 2.5 px) is
+    found with correct corner ids only, every corner within 0.5 px of the projected truth,
+    and at least as many corners as OpenCV's CharucoDetector finds (6 and 12 on these
+    frames; 39 and 37 of 54 here)."""
+    renderer, robot = grazing
+    fr = renderer.render(poses={"robot": _turned(70)}, frame=frame)
+    image = fr.images["left"]
+    truth = fr.truth["left"]["robot"]
+    assert len(truth.corner_ids) == robot.corner_count
+    found = detect_fields(image, [robot])
+    assert "robot" in found
+    fc = found["robot"]
+    err, wrong = _score(fc, truth)
+    assert wrong == []
+    assert err.max() <= 0.5, f"max corner error {err.max():.3f} px"
+    assert len(fc) >= 30 and len(fc.markers) >= 15, (len(fc), len(fc.markers))
+    corners, ids, _, _ = cv2.aruco.CharucoDetector(robot.board).detectBoard(image)
+    assert len(fc) >= (0 if ids is None else len(ids))
+
+
+@pytest.mark.parametrize("angle", [50, 60, 65, 72, 75, 80])
+def test_grazing_corners_are_subpixel_or_dropped(grazing, angle):
+    """Detection, stability where methods fail (issue 3): from face-on to edge-on, every
+    corner reported is visible in the truth and within 0.5 px of it; a corner that cannot
+    be located so well is dropped. Up to 65 deg the whole field is found (>= 50 of 54
+    corners). At 72 deg the markers are 8-13 px wide and some quads are several pixels
+    off: one prediction landed 4.7 px from its corner, ``cornerSubPix`` gave up there and
+    the point used to be reported as it was. From 75 deg (80 deg to the line of sight,
+    bit cells 1-1.7 px under a 1 px blur) no marker can be read exactly, and nothing is
+    reported."""
+    renderer, robot = grazing
+    for frame in (0, 1):
+        fr = renderer.render(poses={"robot": _turned(angle)}, frame=frame)
+        found = detect_fields(fr.images["left"], [robot])
+        if angle <= 65:
+            assert len(found["robot"]) >= 50, (frame, len(found["robot"]))
+        if "robot" not in found:
+            continue
+        err, wrong = _score(found["robot"], fr.truth["left"]["robot"])
+        assert wrong == [], (frame, wrong)
+        assert err.max() <= 0.5, (frame, f"max corner error {err.max():.3f} px")
