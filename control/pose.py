@@ -46,7 +46,7 @@ class CornerModel(Protocol):
 Weighting = Literal["none", "cos", "cos2", "axis", "paper"]
 WEIGHTINGS: tuple[str, ...] = ("none", "cos", "cos2", "axis", "paper")
 #: The weighting NVG-BA uses unless told otherwise (see docs/tracking.md for the choice).
-DEFAULT_WEIGHTING: Weighting = "cos"
+DEFAULT_WEIGHTING: Weighting = "cos2"
 
 #: Smallest residual standard deviation (px) used for the covariance.
 MIN_SIGMA_PX = 0.05

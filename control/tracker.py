@@ -50,6 +50,7 @@ from .errors import MarkerFieldError
 from .geometry import invert
 from .markers import MarkerField
 from .pose import (
+    DEFAULT_WEIGHTING,
     Observation,
     PoseEstimate,
     Weighting,
@@ -269,7 +270,7 @@ class Tracker:
     """
 
     def __init__(self, rig: Rig, fields: Sequence[MarkerField], method: Method = "nvgba",
-                 mode: Mode = "predict", weighting: Weighting = "cos",
+                 mode: Mode = "predict", weighting: Weighting = DEFAULT_WEIGHTING,
                  settings: TrackerSettings = TrackerSettings(),
                  bodies: Sequence[RigidBody] = ()):
         if method not in METHODS:

@@ -458,7 +458,7 @@ def test_nvgba_not_worse_than_ba_on_a_curved_field_seen_obliquely():
     radius) turned 35 deg to the rig, with corner noise growing with obliquity
     (0.05 px / cos), NVG-BA's RMS translation and rotation errors over 100 trials are not
     worse than plain BA's by more than 10 %; eq. 14 as printed ('paper', weights growing
-    with obliquity) is worse than the default 'cos'."""
+    with obliquity) is worse than the default weighting."""
     fld = CURVED
     T = transform_from_euler([0.0, 0.0, 0.19], [0, 35, 0])
     rng = np.random.default_rng(0)

@@ -54,10 +54,10 @@ def test_from_files_with_the_shipped_rig_and_fields():
     """Tracker construction: from_files reads the shipped rig and marker-field files
     (cameras left/right, fields robot/effector/opener) and passes method and options on;
     unknown methods or modes, duplicate field names and an empty field list are refused."""
-    tr = Tracker.from_files(RIG_FILE, FIELDS_FILE, method="ba", mode="roi", weighting="cos2")
+    tr = Tracker.from_files(RIG_FILE, FIELDS_FILE, method="ba", mode="roi", weighting="axis")
     assert set(tr.fields) == set(FIELDS)
     assert tuple(tr.rig.names) == ("left", "right")
-    assert (tr.method, tr.mode, tr.weighting) == ("ba", "roi", "cos2")
+    assert (tr.method, tr.mode, tr.weighting) == ("ba", "roi", "axis")
     assert Tracker.from_files(str(RIG_FILE), str(FIELDS_FILE)).method == "nvgba"
     assert isinstance(tr.last_timing, FrameTiming)
     fields = list(tr.fields.values())
