@@ -357,24 +357,27 @@ def test_board_layout_marker_corner_ids():
                 np.testing.assert_allclose(layout.corner_flat[ids[k]], square[k], atol=1e-12)
 
 
+# A plane homography (sheet metres -> pixels) for the corner-prediction tests.
+_H = np.array([[9000.0, 1500.0, 200.0], [-800.0, 8500.0, 150.0], [3.0, -2.0, 1.0]])
+
+
+def _to_px(p: np.ndarray) -> np.ndarray:
+    q = np.concatenate([p, np.ones(p.shape[:-1] + (1,))], axis=-1) @ _H.T
+    return q[..., :2] / q[..., 2:]
+
+
 def test_predict_corners_through_marker_homographies():
     """Detection step 3: on a plane, each decoded marker's homography puts the corners of
     its square exactly where they are; a corner two markers predict takes their mean, and
     a misread marker (id of another square) makes the corners it disagrees on drop out."""
     layout = BoardLayout.of(BOARD)
-    H = np.array([[9000.0, 1500.0, 200.0], [-800.0, 8500.0, 150.0], [3.0, -2.0, 1.0]])
-
-    def to_px(p):
-        q = np.concatenate([p, np.ones(p.shape[:-1] + (1,))], axis=-1) @ H.T
-        return q[..., :2] / q[..., 2:]
-
-    quads = [Quad(int(BOARD.first_id + m), to_px(layout.marker_flat[m]))
+    quads = [Quad(int(BOARD.first_id + m), _to_px(layout.marker_flat[m]))
              for m in range(BOARD.marker_count)]
-    quads.append(Quad(7, to_px(layout.marker_flat[0])))  # another field's id: ignored
+    quads.append(Quad(7, _to_px(layout.marker_flat[0])))  # another field's id: ignored
     ids, px, sq, used = predict_corners(BOARD, layout, quads)
     np.testing.assert_array_equal(ids, BOARD.corner_ids)
     # 1e-4 px: the layout takes marker outlines from OpenCV's float32 board (~1e-9 m)
-    np.testing.assert_allclose(px, to_px(BOARD.corners_flat), rtol=0, atol=1e-4)
+    np.testing.assert_allclose(px, _to_px(BOARD.corners_flat), rtol=0, atol=1e-4)
     assert np.all((sq > 20) & (sq < 60))  # about 4 mm x ~9000 px/m
     np.testing.assert_array_equal(used, BOARD.marker_ids)
     # marker 5 claims to be marker 6: its square's corners disagree with the neighbours'
@@ -382,11 +385,10 @@ def test_predict_corners_through_marker_homographies():
     bad[5] = Quad(int(BOARD.first_id + 6), bad[5].corners)
     ids2, px2, _, _ = predict_corners(BOARD, layout, bad)
     assert len(ids2) < len(ids)
-    exact = to_px(BOARD.corners_flat)
+    exact = _to_px(BOARD.corners_flat)
     np.testing.assert_allclose(px2, exact[ids2], rtol=0, atol=1e-4)
     none = predict_corners(BOARD, layout, [Quad(7, quads[0].corners)])
     assert all(len(a) == 0 for a in none)
-
 
 
 def test_predict_board_axes_and_colouring():
@@ -394,13 +396,7 @@ def test_predict_board_axes_and_colouring():
     along the sheet's x and y (the homography's derivative there) and which diagonal
     holds the light squares, as printed on the board image."""
     layout = BoardLayout.of(BOARD)
-    H = np.array([[9000.0, 1500.0, 200.0], [-800.0, 8500.0, 150.0], [3.0, -2.0, 1.0]])
-
-    def to_px(p):
-        q = np.concatenate([p, np.ones(p.shape[:-1] + (1,))], axis=-1) @ H.T
-        return q[..., :2] / q[..., 2:]
-
-    quads = [Quad(int(BOARD.first_id + m), to_px(layout.marker_flat[m]))
+    quads = [Quad(int(BOARD.first_id + m), _to_px(layout.marker_flat[m]))
              for m in range(BOARD.marker_count)]
     pr = predict_board(BOARD, layout, quads)
     ids, px, sq, used = predict_corners(BOARD, layout, quads)
@@ -410,7 +406,7 @@ def test_predict_board_axes_and_colouring():
     h = 1e-7 * BOARD.square
     for k, step in enumerate(([h, 0.0], [0.0, h])):
         step = np.array(step)
-        deriv = (to_px(xy + step) - to_px(xy - step)) / (2 * h) * BOARD.square
+        deriv = (_to_px(xy + step) - _to_px(xy - step)) / (2 * h) * BOARD.square
         np.testing.assert_allclose(pr.axes[:, k], deriv, rtol=1e-5, atol=1e-6)
     per_square = 100
     sheet = BOARD.board_image(per_square)
