@@ -13,7 +13,7 @@ from __future__ import annotations
 import abc
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Self
+from typing import Generic, Self, TypeVar
 
 import numpy as np
 
@@ -40,7 +40,50 @@ class CameraFrame:
     camera: str
 
 
-class Camera(abc.ABC):
+ItemT = TypeVar("ItemT")
+
+
+class FrameStream(Generic[ItemT]):
+    """``async with`` and ``async for`` over a source with ``start()``, ``read()`` and an
+    idempotent ``close()``: a camera, or a set of cameras read in step. A failed
+    ``start()`` closes what it opened; iteration ends at :class:`EndOfStream`."""
+
+    async def start(self) -> None:
+        raise NotImplementedError
+
+    async def read(self) -> ItemT:
+        raise NotImplementedError
+
+    async def close(self) -> None:
+        raise NotImplementedError
+
+    async def __aenter__(self) -> Self:
+        try:
+            await self.start()
+        except BaseException:
+            await self.close()  # release whatever a half-done start() opened
+            raise
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    def __aiter__(self) -> Self:
+        return self
+
+    async def __anext__(self) -> ItemT:
+        try:
+            return await self.read()
+        except EndOfStream:
+            raise StopAsyncIteration from None
+
+
+class Camera(FrameStream[CameraFrame], abc.ABC):
     """Abstract camera: ``start()``, ``read()``, idempotent ``close()``.
 
     Backends set ``self._size`` in ``start()``; everything else is theirs.
@@ -76,31 +119,6 @@ class Camera(abc.ABC):
     @abc.abstractmethod
     async def close(self) -> None:
         """Release the device. Idempotent; safe before ``start()`` and after a failed one."""
-
-    async def __aenter__(self) -> Self:
-        try:
-            await self.start()
-        except BaseException:
-            await self.close()  # release whatever a half-done start() opened
-            raise
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
-
-    def __aiter__(self) -> Self:
-        return self
-
-    async def __anext__(self) -> CameraFrame:
-        try:
-            return await self.read()
-        except EndOfStream:
-            raise StopAsyncIteration from None
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r})"

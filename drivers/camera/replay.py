@@ -29,8 +29,7 @@ import re
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
 import anyio
 import anyio.to_thread
@@ -38,7 +37,7 @@ import cv2
 import numpy as np
 
 from ..errors import DriverError, DriverInitError, DriverIOError, EndOfStream
-from .base import Camera, CameraFrame
+from .base import Camera, CameraFrame, FrameStream
 
 __all__ = [
     "DEFAULT_FPS",
@@ -494,7 +493,7 @@ class ReplayCamera(Camera):
         return f"ReplayCamera({os.fspath(self.path)!r}, name={self.name!r})"
 
 
-class ReplayRig:
+class ReplayRig(FrameStream[dict[str, CameraFrame]]):
     """Several recordings replayed in step, e.g. ``{"left": dir_a, "right": dir_b}``.
 
     Every source must hold the same number of frames. ``read()`` returns one frame per
@@ -549,27 +548,6 @@ class ReplayRig:
     async def close(self) -> None:
         for camera in self.cameras.values():
             await camera.close()
-
-    async def __aenter__(self) -> Self:
-        await self.start()  # closes what it opened if it fails
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
-
-    def __aiter__(self) -> Self:
-        return self
-
-    async def __anext__(self) -> dict[str, CameraFrame]:
-        try:
-            return await self.read()
-        except EndOfStream:
-            raise StopAsyncIteration from None
 
 
 def _leaves(group: BaseExceptionGroup) -> list[BaseException]:
