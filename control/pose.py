@@ -211,12 +211,20 @@ def _degenerate(points: np.ndarray, px: np.ndarray) -> bool:
     """
     if len(points) < 4:
         return True
-    sv3 = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
-    sv2 = np.linalg.svd(px - px.mean(axis=0), compute_uv=False)
-    for sv in (sv3, sv2):
-        if sv[0] <= 0 or sv[1] < 1e-3 * sv[0]:
-            return True
+    sv3, sv2 = _spread(points), _spread(px)
+    if _collinear(sv3) or _collinear(sv2):
+        return True
     return bool(sv3[2] < 1e-3 * sv3[0] and sv2[1] < MIN_EDGE_ON_SPREAD * sv2[0])
+
+
+def _spread(arr: np.ndarray) -> np.ndarray:
+    """Singular values of the centred points (largest first)."""
+    return np.linalg.svd(arr - arr.mean(axis=0), compute_uv=False)
+
+
+def _collinear(sv: np.ndarray) -> bool:
+    """True for a spread (:func:`_spread`) of points on one spot or (nearly) one line."""
+    return bool(sv[0] <= 0 or sv[1] < 1e-3 * sv[0])
 
 
 def _degenerate_set(points: np.ndarray, xy: np.ndarray, cam_idx: np.ndarray) -> bool:
@@ -224,10 +232,7 @@ def _degenerate_set(points: np.ndarray, xy: np.ndarray, cam_idx: np.ndarray) -> 
     to a single camera only, since two cameras triangulate what one sees edge-on."""
     if len(np.unique(cam_idx)) == 1:
         return _degenerate(points, xy)
-    if len(points) < 4:
-        return True
-    sv = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
-    return bool(sv[0] <= 0 or sv[1] < 1e-3 * sv[0])
+    return len(points) < 4 or _collinear(_spread(points))
 
 
 def pnp_camera(points: np.ndarray, px: np.ndarray, camera: CameraModel,
