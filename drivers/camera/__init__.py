@@ -14,18 +14,18 @@ camera SDK (Aravis, ...) can still use the others::
 
 from __future__ import annotations
 
-import importlib
 from typing import Any
 
-from ..errors import DriverInitError
+from ..registry import backend_class
 from .base import Camera, CameraFrame
 
 __all__ = ["BACKENDS", "Camera", "CameraFrame", "camera_class", "open_camera"]
 
 #: Backend name -> ``"module:Class"``; the module is imported on first use.
-#: Planned: "sim", "aravis", "v4l2".
+#: Planned: "aravis", "v4l2".
 BACKENDS: dict[str, str] = {
     "replay": "oralnav.drivers.camera.replay:ReplayCamera",
+    "sim": "oralnav.drivers.camera.sim:SimCamera",
 }
 
 
@@ -35,24 +35,7 @@ def camera_class(backend: str) -> type[Camera]:
     Raises:
         DriverInitError: unknown name, or the backend's module (or its SDK) cannot be imported.
     """
-    try:
-        target = BACKENDS[backend]
-    except (KeyError, TypeError):
-        known = ", ".join(sorted(BACKENDS))
-        raise DriverInitError(f"unknown camera backend {backend!r} (known: {known})") from None
-    module_name, _, class_name = target.partition(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as exc:
-        raise DriverInitError(
-            f"camera backend {backend!r} is not available: cannot import {module_name} ({exc})"
-        ) from exc
-    cls = getattr(module, class_name, None)
-    if not (isinstance(cls, type) and issubclass(cls, Camera)):
-        raise DriverInitError(
-            f"camera backend {backend!r}: {target} is not a Camera subclass"
-        )
-    return cls
+    return backend_class("camera", BACKENDS, backend, Camera)
 
 
 def open_camera(backend: str, **kwargs: Any) -> Camera:
