@@ -55,11 +55,67 @@ def _iso_speed(v: float) -> float:
 
 
 class SafetySection(Strict):
+    """Watchdogs and limits (docs/safety.md). SI units unless the key names another;
+    positions and the workspace are in the robot base frame."""
+
     max_speed: Annotated[Float, Field(gt=0)] = ISO_REDUCED_SPEED
     near_patient_speed: Annotated[Float, Field(gt=0)] = 0.05
     stale_pose: Annotated[Float, Field(gt=0, le=1.0)] = 0.1
+    # rad/s; the ISO speed bounds the TCP's linear speed only, so rotation has its own
+    max_angular_speed: Annotated[Float, Field(gt=0, le=3.14159)] = 0.5
+    near_patient_angular_speed: Annotated[Float, Field(gt=0, le=3.14159)] = 0.2
+    # m: within this distance of the opener or a target the near-patient speeds apply
+    near_patient_distance: Annotated[Float, Field(gt=0, le=0.5)] = 0.1
+    # s a camera's frame counter may stay unchanged
+    camera_stall: Annotated[Float, Field(gt=0, le=2.0)] = 0.2
+    # s a driver may go without a heartbeat or state message
+    driver_silence: Annotated[Float, Field(gt=0, le=1.0)] = 0.1
+    # consecutive late control periods that trip; one period later than
+    # max_period_lateness (s) trips at once, as does a loop completing none for that long
+    deadline_misses: Annotated[Int, Field(ge=1, le=1000)] = 5
+    max_period_lateness: Annotated[Float, Field(gt=0, le=0.1)] = 0.01
+    # 1-sigma pose uncertainty that trips (m, deg); the tracker's own gate withholds
+    # poses above 0.5 mm / 0.5 deg, so these only catch what slips past it
+    max_position_sigma: Annotated[Float, Field(gt=0, le=0.01)] = 0.001
+    max_rotation_sigma_deg: Annotated[Float, Field(gt=0, le=10.0)] = 1.0
+    # m, base frame: a UR5e's reach (0.85 m) above its mounting plane; set the real
+    # cell's box in its configuration
+    workspace_min: tuple[Float, Float, Float] = (-0.85, -0.85, 0.0)
+    workspace_max: tuple[Float, Float, Float] = (0.85, 0.85, 1.0)
 
     _check_iso = field_validator("max_speed", "near_patient_speed")(_iso_speed)
+
+    @field_validator("near_patient_angular_speed")
+    @classmethod
+    def _near_turns_slower(cls, v: float, info: ValidationInfo) -> float:
+        top = info.data.get("max_angular_speed")
+        if top is not None and v > top:
+            raise ValueError(f"near_patient_angular_speed ({v} rad/s) must not exceed "
+                             f"max_angular_speed ({top} rad/s)")
+        return v
+
+    @field_validator("workspace_min", "workspace_max")
+    @classmethod
+    def _within_reach(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        # 2 m is beyond any arm this daemon drives: a larger figure is a unit slip (mm)
+        for axis, x in zip("xyz", v, strict=True):
+            if abs(x) > 2.0:
+                raise ValueError(f"{axis} = {x} m is beyond 2 m from the base "
+                                 "(metres expected)")
+        return v
+
+    @field_validator("workspace_max")
+    @classmethod
+    def _max_above_min(cls, v: tuple[float, float, float],
+                       info: ValidationInfo) -> tuple[float, float, float]:
+        lo = info.data.get("workspace_min")
+        if lo is not None:
+            bad = [f"{a}: {h} <= {m}" for a, m, h in zip("xyz", lo, v, strict=True)
+                   if not h > m]
+            if bad:
+                raise ValueError("workspace_max must exceed workspace_min on every axis ("
+                                 + ", ".join(bad) + ")")
+        return v
 
     @field_validator("near_patient_speed")
     @classmethod
@@ -73,8 +129,45 @@ class SafetySection(Strict):
 
 
 class ApiSection(Strict):
-    host: str = "127.0.0.1"
+    """The operator REST API (docs/api.md).
+
+    ``tokens_file`` is relative to this configuration file; ``None`` makes the daemon
+    generate demo tokens at start. ``audit_log`` is state, not configuration: a relative
+    path is resolved against ``$STATE_DIRECTORY`` (set by systemd's ``StateDirectory=``),
+    else the working directory, never against the (possibly read-only, packaged) config
+    folder; see ``oralnav.daemon.audit.resolve_audit_path``.
+    """
+
+    # declared before host so that host's check below sees it
+    allow_remote: bool = Field(False, strict=True)
+    # validate_default: a default host must pass the loopback check too
+    host: str = Field("127.0.0.1", min_length=1, validate_default=True)
     port: Annotated[Int, Field(ge=1, le=65535)] = 8750
+    tokens_file: str | None = Field(None, min_length=1)
+    audit_log: str = Field("oralnav-audit.jsonl", min_length=1)
+    telemetry_hz: Annotated[Float, Field(ge=1, le=100)] = 20.0
+
+    @staticmethod
+    def is_loopback(host: str) -> bool:
+        """True for ``localhost`` and loopback IP literals (127.0.0.0/8, ::1); a host name
+        is not resolved (no I/O while validating), so any other name counts as remote."""
+        import ipaddress  # local: only this class of the module needs it
+
+        if host.lower() == "localhost":
+            return True
+        try:
+            return ipaddress.ip_address(host.strip("[]")).is_loopback
+        except ValueError:
+            return False
+
+    @field_validator("host")
+    @classmethod
+    def _loopback_unless_allowed(cls, v: str, info: ValidationInfo) -> str:
+        # a surgical robot's command port must not face the network by accident
+        if not cls.is_loopback(v) and info.data.get("allow_remote") is not True:
+            raise ValueError(f"{v!r} is not a loopback address; the operator API binds "
+                             "remote interfaces only with allow_remote = true")
+        return v
 
 
 class DaemonFile(Strict):

@@ -1,0 +1,570 @@
+"""The operator REST API: status, poses, targets, e-stop, reset, procedure, live telemetry.
+
+:func:`build_app` wraps an :class:`Operations` (the daemon core) in a FastAPI app;
+:func:`serve` runs it with uvicorn inside the daemon's anyio task group. docs/api.md lists
+the endpoints, roles, status codes and the audit log.
+
+Rules every endpoint keeps:
+
+- authentication first: a missing or unknown bearer token is 401 (``WWW-Authenticate:
+  Bearer``), a role too low is 403, before the body is even looked at;
+- every state change is a POST and needs the ``operator`` role;
+- a refused request (401/403/400/422/409/503) calls nothing in ``ops`` except the one
+  that refuses it, and changes nothing;
+- every command (POST, telemetry connect) leaves one line in the audit log, refused or not;
+  when the log cannot be written the command is refused with 503 (the e-stop excepted:
+  it always runs, see :func:`build_app`).
+"""
+
+# no ``from __future__ import annotations``: FastAPI must evaluate the endpoints' local
+# ``Annotated`` aliases (Observer, Operator) where they are defined
+import asyncio
+import contextlib
+import functools
+import json
+import logging
+import math
+import re
+import socket
+from collections.abc import Callable, Iterator, Mapping
+from enum import Enum
+from typing import Annotated, Any, Literal, Protocol
+
+import anyio
+import uvicorn
+from anyio.abc import TaskStatus
+from fastapi import Depends, FastAPI, Request, WebSocket
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_validator
+from starlette.websockets import WebSocketDisconnect, WebSocketState
+
+from oralnav import __version__
+from oralnav.config.daemon import ApiSection
+from oralnav.config.loader import Float
+from oralnav.safety.errors import StateError
+
+from .audit import AuditError, AuditLog
+from .auth import Principal, Role, TokenStore
+
+log = logging.getLogger(__name__)
+
+#: largest distance of a suture target from the opener-marker origin (m)
+MAX_TARGET_RADIUS = 0.2
+#: most targets one POST /targets may set
+MAX_TARGETS = 64
+#: a tissue normal shorter than this cannot be normalised (dimensionless)
+MIN_NORMAL_NORM = 1e-6
+
+ProcedureAction = Literal["start", "pause", "resume", "abort"]
+_Vec3 = tuple[Float, Float, Float]
+
+
+# -- request bodies --------------------------------------------------------------------
+class _Body(BaseModel):
+    # unknown keys are errors (a typo must not be silently ignored); numbers are finite
+    # and real numbers (no "0.1" strings, no booleans)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class SutureTarget(_Body):
+    """A planned suture point in the opener-marker frame ``OM``.
+
+    ``p_OM``: position (m), at most ``MAX_TARGET_RADIUS`` from the ``OM`` origin.
+    ``n_OM``: optional tissue normal; any finite non-zero 3-vector, stored normalised.
+    """
+
+    name: Annotated[str, StringConstraints(min_length=1, max_length=64,
+                                           pattern=r"^[A-Za-z0-9_.-]+$")]
+    p_OM: _Vec3
+    n_OM: _Vec3 | None = None
+
+    @field_validator("p_OM")
+    @classmethod
+    def _within_reach(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        r = math.hypot(*v)
+        if r > MAX_TARGET_RADIUS:
+            raise ValueError(f"|p_OM| = {r:.4g} m is farther than {MAX_TARGET_RADIUS} m from "
+                             "the opener marker (metres expected, not millimetres?)")
+        return v
+
+    @field_validator("n_OM")
+    @classmethod
+    def _unit(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+        if v is None:
+            return v
+        n = math.hypot(*v)
+        if not n >= MIN_NORMAL_NORM:
+            raise ValueError(f"n_OM has norm {n:.3g}; a tissue normal must be non-zero")
+        return (v[0] / n, v[1] / n, v[2] / n)
+
+
+class TargetsBody(_Body):
+    """``POST /targets``: the full list of suture targets (replaces the current one)."""
+
+    targets: list[SutureTarget] = Field(max_length=MAX_TARGETS)
+
+    @field_validator("targets")
+    @classmethod
+    def _unique(cls, v: list[SutureTarget]) -> list[SutureTarget]:
+        seen: set[str] = set()
+        dup = sorted({t.name for t in v if t.name in seen or seen.add(t.name)})
+        if dup:
+            raise ValueError(f"target names must be unique; repeated: {', '.join(dup)}")
+        return v
+
+
+class EstopBody(_Body):
+    """``POST /estop`` (the body is optional)."""
+
+    reason: str = Field("operator e-stop", max_length=500)
+
+
+# -- what the daemon core provides -----------------------------------------------------
+class Operations(Protocol):
+    """What the API needs from the daemon core. Called on the event loop; none may block.
+
+    Methods returning ``dict`` give JSON-able values (numpy arrays and non-finite floats are
+    tolerated: they are sent as lists and ``null``). Commands take ``who``, the token name
+    of the operator, for the core's own log.
+    """
+
+    def status(self) -> dict[str, Any]: ...      # JSON-able: state, reasons, rates, latencies
+    def poses(self) -> dict[str, Any]: ...       # JSON-able newest poses with timestamps
+    def telemetry(self) -> dict[str, Any]: ...   # JSON-able live snapshot for the websocket
+    def estop(self, who: str, reason: str) -> None: ...
+    def reset(self, who: str) -> None: ...       # raises StateError when not allowed
+    def procedure(self, action: Literal["start", "pause", "resume", "abort"],
+                  who: str) -> None: ...  # StateError
+    def targets(self) -> list[SutureTarget]: ...
+    def set_targets(self, targets: list[SutureTarget],
+                    who: str) -> None: ...  # StateError (e.g. while RUNNING)
+
+
+# -- helpers -----------------------------------------------------------------------------
+class _Refused(Exception):
+    """A request refused before it reaches ``ops`` (401/403)."""
+
+    def __init__(self, status: int, detail: str, headers: dict[str, str] | None = None,
+                 principal: Principal | None = None) -> None:
+        super().__init__(detail)
+        self.status, self.detail, self.headers, self.principal = status, detail, headers, principal
+
+
+def jsonable(x: Any) -> Any:
+    """``x`` as plain JSON values: numpy arrays and scalars become lists and numbers, models
+    become dicts, non-finite floats become ``null`` (standard JSON has no NaN)."""
+    if x is None or isinstance(x, bool | int | str):
+        return x
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if isinstance(x, BaseModel):
+        return jsonable(x.model_dump())
+    if isinstance(x, Mapping):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple | set | frozenset):
+        return [jsonable(v) for v in x]
+    if isinstance(x, Enum):
+        return jsonable(x.value)
+    if hasattr(x, "tolist"):  # numpy arrays and scalars
+        return jsonable(x.tolist())
+    raise TypeError(f"cannot send a {type(x).__name__} as JSON")
+
+
+def _client(conn: Request | WebSocket) -> str | None:
+    return f"{conn.client.host}:{conn.client.port}" if conn.client else None
+
+
+def _bearer_from_header(value: str | None) -> str | None:
+    scheme, _, token = (value or "").partition(" ")
+    return (token.strip() or None) if scheme.lower() == "bearer" else None
+
+
+def _authorize(tokens: TokenStore, token: str | None, required: Role) -> Principal:
+    """The principal of ``token`` if it has ``required``; raises :class:`_Refused`."""
+    if token is None:
+        raise _Refused(401, "missing bearer token (Authorization: Bearer <token>)",
+                       {"WWW-Authenticate": 'Bearer realm="oralnav"'})
+    principal = tokens.authenticate(token)
+    if principal is None:
+        raise _Refused(401, "unknown bearer token",
+                       {"WWW-Authenticate": 'Bearer realm="oralnav", error="invalid_token"'})
+    if not principal.allows(required):
+        raise _Refused(403, f"needs the {required} role; token {principal.name!r} has "
+                            f"{principal.role}", principal=principal)
+    return principal
+
+
+def _where(loc: tuple[Any, ...]) -> str:
+    # ("body", "targets", 0, "p_OM", 1) -> "targets[0].p_OM[1]"
+    out = ""
+    for p in loc[1:] if loc and loc[0] in {"body", "path", "query"} else loc:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    return out or "body"
+
+
+def _describe(errors: list[dict[str, Any]]) -> list[dict[str, str]]:
+    """Pydantic's errors as ``{"where", "reason"}``, the reason naming what was sent."""
+    out = []
+    for e in errors:
+        msg = str(e.get("msg", "invalid"))
+        if e.get("type") == "value_error":
+            msg = str(e.get("ctx", {}).get("error", msg))  # the validator's own words
+        elif e.get("type") == "extra_forbidden":
+            msg = "unknown key"
+        elif e.get("type") == "json_invalid":
+            loc = tuple(e.get("loc", ()))
+            at = f" at character {loc[-1]}" if loc and isinstance(loc[-1], int) else ""
+            out.append({"where": "body", "reason": f"not valid JSON{at}: "
+                                                   f"{e.get('ctx', {}).get('error', '?')}"})
+            continue
+        inp = e.get("input")
+        if e.get("type") not in {"missing", "extra_forbidden", "value_error"} \
+                and isinstance(inp, int | float | str | bool) and len(repr(inp)) <= 40:
+            msg += f" (got {inp!r})"
+        out.append({"where": _where(tuple(e.get("loc", ()))), "reason": msg})
+    return out
+
+
+async def _body(request: Request) -> bytes:
+    try:
+        return await request.body()
+    except RuntimeError:  # the stream was consumed elsewhere: nothing left to summarise
+        return b""
+
+
+# -- the app -----------------------------------------------------------------------------
+def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
+              telemetry_hz: float = 20.0) -> FastAPI:
+    """The operator API over ``ops``; ``telemetry_hz`` is the websocket snapshot rate.
+
+    ``audit`` must be open. The e-stop is never refused for an audit failure: refusing to
+    stop a robot because a disk is full would trade safety for bookkeeping. It runs, its
+    record is attempted (kept for retry and sent to the system journal on failure) and
+    the answer says ``"audited": false``.
+    """
+    if not 0 < telemetry_hz <= 1000:
+        raise ValueError(f"telemetry_hz must be in (0, 1000] Hz, got {telemetry_hz}")
+    period = 1.0 / telemetry_hz
+    app = FastAPI(title="oralnav operator API", version=__version__,
+                  description="Status, poses, targets, e-stop and procedure control of the "
+                              "oralnav suturing robot. See docs/api.md.")
+    bearer = HTTPBearer(auto_error=False, scheme_name="bearer",
+                        description="a token from the tokens file; observer reads, "
+                                    "operator also commands")
+
+    def require(role: Role) -> Callable[..., Principal]:
+        def dependency(cred: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]
+                       ) -> Principal:
+            return _authorize(tokens, cred.credentials if cred else None, role)
+        return dependency
+
+    Observer = Annotated[Principal, Depends(require("observer"))]
+    Operator = Annotated[Principal, Depends(require("operator"))]
+
+    async def record(conn: Request | WebSocket, principal: Principal | None, status: int,
+                     result: str, body: bytes = b"", method: str | None = None) -> bool:
+        """One audit record from a worker thread (fsync must not stall the loop); False
+        when it could not be written (it is then kept for retry and journaled)."""
+        try:
+            await anyio.to_thread.run_sync(functools.partial(
+                audit.record, who=principal.name if principal else None,
+                role=principal.role if principal else None,
+                method=method or getattr(conn, "method", "WS"), path=conn.url.path,
+                body=body, status=status, result=result, client=_client(conn)))
+        except AuditError:
+            return False  # audit.record has logged it with the record
+        return True
+
+    async def audit_ready() -> str | None:
+        """None when a command may run, else why the audit log refuses it."""
+        try:
+            await anyio.to_thread.run_sync(audit.check)
+        except AuditError as exc:
+            return str(exc)
+        return None
+
+    def reply(status: int, content: dict[str, Any], audited: bool,
+              headers: dict[str, str] | None = None) -> JSONResponse:
+        headers = dict(headers or {})
+        if not audited:
+            headers["X-Audit"] = "failed"
+        return JSONResponse(content, status, headers=headers)
+
+    @app.exception_handler(_Refused)
+    async def _on_refused(request: Request, exc: _Refused) -> JSONResponse:
+        audited = await record(request, exc.principal, exc.status, exc.detail,
+                               await _body(request))
+        return reply(exc.status, {"detail": exc.detail}, audited, exc.headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def _on_invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        # FastAPI parses the JSON before the dependencies run: authenticate here first so
+        # that a stranger learns nothing about the body (auth always answers first)
+        required: Role = "operator" if request.method == "POST" else "observer"
+        try:
+            principal = _authorize(
+                tokens, _bearer_from_header(request.headers.get("authorization")), required)
+        except _Refused as refused:
+            return await _on_refused(request, refused)
+        errors = _describe(list(exc.errors()))
+        status = 400 if any(e.get("type") == "json_invalid" for e in exc.errors()) else 422
+        detail = "; ".join(f"{e['where']}: {e['reason']}" for e in errors)
+        audited = await record(request, principal, status, detail, await _body(request))
+        return reply(status, {"detail": detail, "errors": errors}, audited)
+
+    async def command(request: Request, who: Principal, name: str, run: Callable[[], None],
+                      *, audit_first: bool = True) -> JSONResponse:
+        """Run one state-changing command: audit check, ``run()``, audit record, reply."""
+        if audit_first:
+            why = await audit_ready()
+            if why is not None:
+                detail = f"command refused: the audit log cannot be written ({why})"
+                await record(request, who, 503, detail, await _body(request))
+                return reply(503, {"detail": detail}, False)
+        try:
+            run()
+            status, result = 200, "ok"
+        except StateError as exc:
+            status, result = 409, str(exc) or "not allowed in the current state"
+        except ValueError as exc:  # LimitError is a ValueError too
+            status, result = 422, str(exc) or "invalid value"
+        except Exception as exc:
+            log.exception("%s by %s failed", name, who.name)
+            status, result = 500, f"internal error: {type(exc).__name__}: {exc}"
+        audited = await record(request, who, status, result, await _body(request))
+        content: dict[str, Any] = ({"ok": True, "command": name, "by": who.name,
+                                    "audited": audited} if status == 200
+                                   else {"detail": result})
+        return reply(status, content, audited)
+
+    def read(fn: Callable[[], Any]) -> JSONResponse:
+        try:
+            return JSONResponse(jsonable(fn()))
+        except StateError as exc:
+            return JSONResponse({"detail": str(exc)}, 409)
+
+    # -- endpoints -------------------------------------------------------------------
+    @app.get("/health", summary="Liveness (no token needed)")
+    async def health() -> dict[str, Any]:
+        return {"ok": True, "service": "oralnav", "version": __version__}
+
+    @app.get("/status", summary="Safety state, reasons, loop rates and latencies")
+    async def get_status(_: Observer) -> JSONResponse:
+        return read(ops.status)
+
+    @app.get("/poses", summary="Newest poses with their timestamps")
+    async def get_poses(_: Observer) -> JSONResponse:
+        return read(ops.poses)
+
+    @app.get("/targets", summary="The current suture targets")
+    async def get_targets(_: Observer) -> JSONResponse:
+        return read(lambda: {"targets": ops.targets()})
+
+    @app.post("/estop", summary="Latch the e-stop (always runs, even if auditing fails)")
+    async def post_estop(request: Request, who: Operator,
+                         body: EstopBody | None = None) -> JSONResponse:
+        reason = body.reason if body else EstopBody().reason
+        return await command(request, who, "estop", lambda: ops.estop(who.name, reason),
+                             audit_first=False)
+
+    @app.post("/reset", summary="Clear a latched stop (409 when not allowed)")
+    async def post_reset(request: Request, who: Operator) -> JSONResponse:
+        return await command(request, who, "reset", lambda: ops.reset(who.name))
+
+    @app.post("/procedure/{action}", summary="Start, pause, resume or abort the procedure")
+    async def post_procedure(request: Request, who: Operator,
+                             action: ProcedureAction) -> JSONResponse:
+        return await command(request, who, f"procedure {action}",
+                             lambda: ops.procedure(action, who.name))
+
+    @app.post("/targets", summary="Replace the suture targets (409 while running)")
+    async def post_targets(request: Request, who: Operator, body: TargetsBody) -> JSONResponse:
+        return await command(request, who, "set targets",
+                             lambda: ops.set_targets(list(body.targets), who.name))
+
+    @app.websocket("/telemetry")
+    async def telemetry(ws: WebSocket) -> None:
+        """Live snapshots at ``telemetry_hz`` until the client goes. The token comes in
+        the Authorization header or, for browsers (which cannot set it), ``?token=``."""
+        token = (_bearer_from_header(ws.headers.get("authorization"))
+                 or ws.query_params.get("token") or None)
+        try:
+            who = _authorize(tokens, token, "observer")
+        except _Refused as exc:
+            await record(ws, exc.principal, exc.status, exc.detail, method="WS")
+            await _deny(ws, exc.status, exc.detail, exc.headers)
+            return
+        why = await audit_ready()
+        result = f"telemetry at {telemetry_hz:g} Hz"
+        if why is not None or not await record(ws, who, 101, result, method="WS"):
+            detail = f"refused: the audit log cannot be written ({why or 'write failed'})"
+            await _deny(ws, 503, detail)
+            return
+        await ws.accept()
+        await _stream(ws, ops, period)
+
+    return app
+
+
+async def _deny(ws: WebSocket, status: int, detail: str,
+                headers: dict[str, str] | None = None) -> None:
+    """Refuse a websocket handshake with a real HTTP status where the server can send one
+    (ASGI denial-response extension), else by closing with 1008 (policy violation)."""
+    if "websocket.http.response" in ws.scope.get("extensions", {}):
+        await ws.send_denial_response(JSONResponse({"detail": detail}, status, headers=headers))
+    else:  # pragma: no cover - uvicorn and the test client both support denial responses
+        await ws.close(code=1008, reason=detail[:120])
+
+
+async def _stream(ws: WebSocket, ops: Operations, period: float) -> None:
+    """Send ``ops.telemetry()`` every ``period`` seconds until the client disconnects."""
+    async with anyio.create_task_group() as tg:
+        async def watch() -> None:
+            # the client never needs to talk; reading is how a disconnect is seen at once
+            while (await ws.receive())["type"] != "websocket.disconnect":
+                pass
+            tg.cancel_scope.cancel()
+
+        tg.start_soon(watch)
+        deadline = anyio.current_time()
+        try:
+            while True:
+                try:
+                    text = json.dumps(jsonable(ops.telemetry()), allow_nan=False)
+                except Exception as exc:
+                    log.exception("telemetry snapshot failed")
+                    await ws.close(code=1011, reason=f"telemetry failed: {type(exc).__name__}")
+                    break
+                await ws.send_text(text)
+                # fixed rate without drift; after a stall, skip rather than burst
+                deadline = max(deadline + period, anyio.current_time())
+                await anyio.sleep_until(deadline)
+        except WebSocketDisconnect:
+            pass
+        tg.cancel_scope.cancel()
+    if ws.application_state == WebSocketState.CONNECTED and \
+            ws.client_state == WebSocketState.CONNECTED:
+        with contextlib.suppress(Exception):
+            await ws.close()
+
+
+# -- serving -------------------------------------------------------------------------------
+_TOKEN_IN_QUERY = re.compile(r"(token=)[^&\s\"']*")
+
+
+class _UvicornLogFilter(logging.Filter):
+    """uvicorn logs websocket paths with their query: never let ``?token=`` reach a log.
+
+    Also drops uvicorn's (0.54, websockets-sansio) false "returned without completing
+    handshake" error, which it logs after every denial response (our refused telemetry
+    connects): the telemetry endpoint always accepts or denies, so it is never true here.
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        msg = record.getMessage()
+        if msg.startswith("ASGI callable returned without completing handshake"):
+            return False
+        if "token=" in msg:
+            record.msg, record.args = _TOKEN_IN_QUERY.sub(r"\1<redacted>", msg), ()
+        return True
+
+
+_LOG_FILTER = _UvicornLogFilter()
+
+
+class _Server(uvicorn.Server):
+    """uvicorn without signal handlers (the daemon owns SIGINT/SIGTERM and stops the API
+    by cancelling its scope) that reports when it is listening."""
+
+    def __init__(self, config: uvicorn.Config, on_listening: Callable[[], None]) -> None:
+        super().__init__(config)
+        self._on_listening = on_listening
+        self.shut_down = False
+
+    @contextlib.contextmanager
+    def capture_signals(self) -> Iterator[None]:
+        # uvicorn.Server.serve() would replace the process's SIGINT/SIGTERM handlers
+        yield
+
+    async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+        await super().startup(sockets=sockets)
+        if self.started:  # the listening socket accepts connections from here on
+            self._on_listening()
+
+    async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+        self.shut_down = True
+        await super().shutdown(sockets=sockets)
+
+
+def _bind(host: str, port: int) -> socket.socket:
+    """A bound TCP socket for ``host:port`` (port 0: a free one); OSError names both."""
+    try:
+        family, kind, proto, _, addr = socket.getaddrinfo(
+            host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)[0]
+        sock = socket.socket(family, kind, proto)
+    except OSError as exc:
+        raise OSError(exc.errno, f"cannot bind the API to {host}:{port}: "
+                                 f"{exc.strerror or exc}") from None
+    try:
+        # a restarted daemon must get its port back while old connections sit in TIME_WAIT
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(addr)
+    except OSError as exc:
+        sock.close()
+        raise OSError(exc.errno, f"cannot bind the API to {host}:{port}: "
+                                 f"{exc.strerror or exc}") from None
+    return sock
+
+
+async def serve(app: FastAPI, host: str, port: int, *, allow_remote: bool = False,
+                grace_s: float = 2.0,
+                task_status: TaskStatus[int] = anyio.TASK_STATUS_IGNORED) -> None:
+    """Serve ``app`` on ``host:port`` until the surrounding scope is cancelled.
+
+    Use ``port = await tg.start(serve, app, host, port)``: it returns the port actually
+    listened on (``port=0`` picks a free one) once connections are accepted. A host that is
+    not loopback is refused unless ``allow_remote`` (``[api] allow_remote``). Installs no
+    signal handlers. On cancellation, open connections get up to ``grace_s`` seconds to
+    finish (websockets are closed with 1012) before the cancellation goes on.
+    Needs anyio's asyncio backend (uvicorn runs on asyncio).
+    """
+    if not allow_remote and not ApiSection.is_loopback(host):
+        raise ValueError(f"refusing to serve the operator API on {host!r}: not a loopback "
+                         "address (set [api] allow_remote = true to allow it)")
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        raise RuntimeError("serve() needs anyio's asyncio backend (uvicorn runs on "
+                           "asyncio)") from None
+    for name in ("uvicorn.error", "uvicorn.access"):
+        if _LOG_FILTER not in logging.getLogger(name).filters:
+            logging.getLogger(name).addFilter(_LOG_FILTER)
+    sock = _bind(host, port)
+    actual = int(sock.getsockname()[1])
+    # log_config=None: leave the daemon's logging alone; lifespan off: the daemon's task
+    # group owns start-up and shutdown; proxy_headers off: audit the real peer address
+    config = uvicorn.Config(app, host=host, port=actual, lifespan="off", log_config=None,
+                            access_log=False, proxy_headers=False, server_header=False,
+                            timeout_graceful_shutdown=grace_s)
+
+    def listening() -> None:
+        log.info("operator API listening on %s:%d", host, actual)
+        task_status.started(actual)
+
+    server = _Server(config, listening)
+    try:
+        await server.serve(sockets=[sock])
+    finally:
+        # uvicorn only shuts down when its own flag is set; on cancellation do it here,
+        # shielded, so that connections are closed before the scope unwinds
+        with anyio.CancelScope(shield=True):
+            if server.started and not server.shut_down:
+                server.should_exit = True
+                with anyio.move_on_after(grace_s + 1.0):
+                    await server.shutdown(sockets=[sock])
+            for s in getattr(server, "servers", []):
+                s.close()
+            sock.close()
+        log.info("operator API on %s:%d stopped", host, actual)

@@ -1,0 +1,591 @@
+"""The operator REST API (``oralnav.daemon.api``) against a fake daemon core.
+
+Requirement (issue 4, REST API): observer reads, operator commands; 401/403 before anything
+else; StateError -> 409, bad values -> 4xx with a reason, and in every refusal nothing in
+the core changes; every command is audited and refused (503) when it cannot be; live
+telemetry over a websocket; ``serve()`` runs uvicorn on the daemon's own anyio loop.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import signal
+import socket
+import time
+from collections.abc import AsyncIterator
+from typing import Any
+
+import anyio
+import httpx
+import numpy as np
+import pytest
+import websockets
+
+from oralnav.daemon import audit as audit_mod
+from oralnav.daemon.api import SutureTarget, build_app, jsonable, serve
+from oralnav.daemon.audit import AuditLog
+from oralnav.daemon.auth import TokenStore
+from oralnav.safety.errors import LimitError, StateError
+
+
+class FakeOps:
+    """A tiny state machine standing in for the daemon core; ``calls`` logs every
+    state-changing call that reached it."""
+
+    def __init__(self) -> None:
+        self.state = "IDLE"
+        self.target_list: list[SutureTarget] = [SutureTarget(name="t0", p_OM=(0.01, 0, 0))]
+        self.calls: list[tuple] = []
+        self.ticks = 0
+
+    def status(self) -> dict[str, Any]:
+        return {"state": self.state, "reasons": [], "rate_hz": np.float64(500.0)}
+
+    def poses(self) -> dict[str, Any]:
+        return {"T_C_OM": np.eye(4), "t": 12.5, "stale": float("nan")}
+
+    def telemetry(self) -> dict[str, Any]:
+        self.ticks += 1
+        return {"tick": self.ticks, "state": self.state, "p": np.zeros(3), "err": float("inf")}
+
+    def estop(self, who: str, reason: str) -> None:
+        self.calls.append(("estop", who, reason))
+        self.state = "ESTOP"
+
+    def reset(self, who: str) -> None:
+        if self.state != "ESTOP":
+            raise StateError(f"nothing to reset: state is {self.state}")
+        self.calls.append(("reset", who))
+        self.state = "IDLE"
+
+    def procedure(self, action: str, who: str) -> None:
+        allowed = {"start": "IDLE", "pause": "RUNNING", "resume": "PAUSED", "abort": "RUNNING"}
+        if self.state != allowed[action]:
+            raise StateError(f"cannot {action} while {self.state}")
+        self.calls.append(("procedure", action, who))
+        self.state = {"start": "RUNNING", "pause": "PAUSED", "resume": "RUNNING",
+                      "abort": "IDLE"}[action]
+
+    def targets(self) -> list[SutureTarget]:
+        return list(self.target_list)
+
+    def set_targets(self, targets: list[SutureTarget], who: str) -> None:
+        if self.state == "RUNNING":
+            raise StateError("targets cannot change while RUNNING")
+        if any(t.name.startswith("limit") for t in targets):
+            raise LimitError("t1 lies outside the virtual fixture workspace")
+        if any(t.name.startswith("boom") for t in targets):
+            raise RuntimeError("core bug")
+        self.calls.append(("set_targets", who))
+        self.target_list = list(targets)
+
+
+POSTS = ["/estop", "/reset", "/procedure/start", "/procedure/pause", "/procedure/resume",
+         "/procedure/abort", "/targets"]
+GOOD_TARGETS = {"targets": [{"name": "s1", "p_OM": [0.01, 0.02, 0.0]},
+                            {"name": "s2", "p_OM": [0.0, -0.01, 0.005], "n_OM": [0, 0, 2]}]}
+
+
+@pytest.fixture
+def rig(tmp_path):
+    """A fake core, generated tokens, an open audit log and an app over them."""
+    clear = TokenStore.generate(tmp_path / "tokens.toml")
+    store = TokenStore.from_file(tmp_path / "tokens.toml")
+    audit = AuditLog(tmp_path / "audit.jsonl").open()
+    ops = FakeOps()
+    app = build_app(ops, store, audit, telemetry_hz=50.0)
+
+    class Rig:
+        pass
+
+    r = Rig()
+    r.ops, r.audit, r.app, r.path = ops, audit, app, tmp_path / "audit.jsonl"
+    r.op = {"Authorization": f"Bearer {clear['operator']}"}
+    r.obs = {"Authorization": f"Bearer {clear['observer']}"}
+    r.tokens = clear
+    yield r
+    audit.close()
+
+
+@pytest.fixture
+async def client(rig):
+    transport = httpx.ASGITransport(app=rig.app)
+    async with httpx.AsyncClient(transport=transport, base_url="http://oralnav") as c:
+        yield c
+
+
+def audit_lines(rig) -> list[dict]:
+    return [json.loads(x) for x in rig.path.read_text().splitlines()]
+
+
+def body_for(path: str) -> dict | None:
+    return GOOD_TARGETS if path == "/targets" else None
+
+
+# -- roles -------------------------------------------------------------------------------
+async def test_health_needs_no_token(client):
+    """issue 4 REST: GET /health answers {"ok": true} without a token."""
+    r = await client.get("/health")
+    assert r.status_code == 200 and r.json()["ok"] is True
+
+
+@pytest.mark.parametrize("path", ["/status", "/poses", "/targets"])
+async def test_reads_need_a_valid_token(client, rig, path):
+    """issue 4 REST: GETs answer 401 with WWW-Authenticate: Bearer without a token or with
+    an unknown one, and 200 for an observer."""
+    for headers in ({}, {"Authorization": "Bearer nope"}, {"Authorization": "Basic abc"}):
+        r = await client.get(path, headers=headers)
+        assert r.status_code == 401 and r.headers["www-authenticate"].startswith("Bearer")
+        assert r.json()["detail"]
+    assert (await client.get(path, headers=rig.obs)).status_code == 200
+    assert (await client.get(path, headers=rig.op)).status_code == 200  # operator >= observer
+
+
+async def test_reads_return_plain_json(client, rig):
+    """issue 4 REST: status, poses and targets come back as plain JSON (numpy arrays as
+    lists, NaN as null)."""
+    assert (await client.get("/status", headers=rig.obs)).json() == \
+        {"state": "IDLE", "reasons": [], "rate_hz": 500.0}
+    poses = (await client.get("/poses", headers=rig.obs)).json()
+    assert poses["T_C_OM"][3] == [0.0, 0.0, 0.0, 1.0] and poses["stale"] is None
+    assert (await client.get("/targets", headers=rig.obs)).json() == \
+        {"targets": [{"name": "t0", "p_OM": [0.01, 0.0, 0.0], "n_OM": None}]}
+
+
+def test_every_post_route_is_covered(rig):
+    """issue 4 REST: the role tests below cover every POST route the app has."""
+    posts = {r.path for r in rig.app.routes if "POST" in getattr(r, "methods", ())}
+    assert posts == {"/estop", "/reset", "/procedure/{action}", "/targets"}
+
+
+@pytest.mark.parametrize("path", POSTS)
+async def test_observer_gets_403_on_every_state_change(client, rig, path):
+    """issue 4 REST: an observer gets 403 on every state-changing endpoint; nothing in the
+    core is called, and the refusal is audited."""
+    r = await client.post(path, headers=rig.obs, json=body_for(path))
+    assert r.status_code == 403 and "operator" in r.json()["detail"]
+    assert rig.ops.calls == [] and rig.ops.state == "IDLE"
+    (rec,) = audit_lines(rig)
+    assert (rec["status"], rec["who"], rec["role"], rec["path"]) == \
+        (403, "observer", "observer", path)
+
+
+@pytest.mark.parametrize("path", POSTS)
+async def test_401_comes_before_body_checks(client, rig, path):
+    """issue 4 REST: without a valid token every POST is 401, even with a malformed or
+    invalid body (a stranger learns nothing about validation); nothing is called."""
+    for headers in ({}, {"Authorization": "Bearer wrong"}):
+        for content in (b"{not json", b'{"bogus": 1}'):
+            r = await client.post(path, headers={**headers, "content-type": "application/json"},
+                                  content=content)
+            assert r.status_code == 401, (headers, content, r.text)
+            assert r.headers["www-authenticate"].startswith("Bearer")
+    r = await client.post(path, headers=rig.obs | {"content-type": "application/json"},
+                          content=b"{not json")
+    assert r.status_code == 403
+    assert rig.ops.calls == []
+    assert [x["status"] for x in audit_lines(rig)] == [401, 401, 401, 401, 403]
+
+
+async def test_operator_drives_the_procedure(client, rig):
+    """issue 4 REST: an operator can set targets, start, pause, resume, abort, e-stop and
+    reset; each call reaches the core with the token's name and is audited."""
+    steps = [("/targets", GOOD_TARGETS), ("/procedure/start", None), ("/procedure/pause", None),
+             ("/procedure/resume", None), ("/procedure/abort", None),
+             ("/estop", {"reason": "test stop"}), ("/reset", None)]
+    for path, body in steps:
+        r = await client.post(path, headers=rig.op, json=body)
+        assert r.status_code == 200, r.text
+        assert r.json()["ok"] is True and r.json()["audited"] is True
+    assert rig.ops.calls == [
+        ("set_targets", "operator"), ("procedure", "start", "operator"),
+        ("procedure", "pause", "operator"), ("procedure", "resume", "operator"),
+        ("procedure", "abort", "operator"), ("estop", "operator", "test stop"),
+        ("reset", "operator")]
+    recs = audit_lines(rig)
+    assert [(x["path"], x["status"], x["who"]) for x in recs] == \
+        [(p, 200, "operator") for p, _ in steps]
+    assert recs[0]["body"].startswith('{"targets":[{"name":"s1"')
+
+
+async def test_estop_body_is_optional(client, rig):
+    """issue 4 REST: POST /estop works without a body (default reason) and rejects unknown
+    keys in one."""
+    assert (await client.post("/estop", headers=rig.op)).status_code == 200
+    assert rig.ops.calls == [("estop", "operator", "operator e-stop")]
+    r = await client.post("/estop", headers=rig.op, json={"reason": "x", "force": True})
+    assert r.status_code == 422 and "force" in r.json()["detail"]
+    assert len(rig.ops.calls) == 1
+
+
+# -- state and value errors ------------------------------------------------------------
+async def test_state_error_is_409_and_changes_nothing(client, rig):
+    """issue 4 REST: a StateError from the core is 409 {"detail": reason}; the fake's
+    state and targets stay as they were, and the refusal is audited."""
+    r = await client.post("/reset", headers=rig.op)
+    assert r.status_code == 409 and r.json() == {"detail": "nothing to reset: state is IDLE"}
+    r = await client.post("/procedure/pause", headers=rig.op)
+    assert r.status_code == 409 and "cannot pause while IDLE" in r.json()["detail"]
+    rig.ops.state = "RUNNING"
+    before = rig.ops.targets()
+    r = await client.post("/targets", headers=rig.op, json=GOOD_TARGETS)
+    assert r.status_code == 409 and "RUNNING" in r.json()["detail"]
+    assert rig.ops.targets() == before and rig.ops.calls == [] and rig.ops.state == "RUNNING"
+    recs = audit_lines(rig)
+    assert [x["status"] for x in recs] == [409, 409, 409]
+    assert recs[2]["result"] == "targets cannot change while RUNNING"
+
+
+async def test_limit_error_is_422_and_core_bug_is_500(client, rig):
+    """issue 4 REST: a LimitError (ValueError) from the core is 422 with its reason; any
+    other exception is 500 naming it; both are audited."""
+    body = {"targets": [{"name": "limit1", "p_OM": [0.0, 0.0, 0.01]}]}
+    r = await client.post("/targets", headers=rig.op, json=body)
+    assert r.status_code == 422 and "virtual fixture" in r.json()["detail"]
+    body = {"targets": [{"name": "boom", "p_OM": [0.0, 0.0, 0.01]}]}
+    r = await client.post("/targets", headers=rig.op, json=body)
+    assert r.status_code == 500 and "RuntimeError: core bug" in r.json()["detail"]
+    assert [x["status"] for x in audit_lines(rig)] == [422, 500]
+
+
+def _target(**kw) -> dict:
+    t = {"name": "s1", "p_OM": [0.01, 0.0, 0.0]}
+    t.update(kw)
+    return t
+
+
+BAD_TARGETS = {
+    # standard JSON has no NaN: clients send the non-standard literal, a string, or 1e999
+    "NaN literal": (b'{"targets": [{"name": "a", "p_OM": [NaN, 0, 0]}]}', "p_OM[0]"),
+    "Infinity literal": (b'{"targets": [{"name": "a", "p_OM": [0, -Infinity, 0]}]}',
+                         "p_OM[1]"),
+    "1e999": (b'{"targets": [{"name": "a", "p_OM": [0, 0, 1e999]}]}', "p_OM[2]"),
+    "string NaN": ({"targets": [_target(p_OM=["NaN", 0, 0])]}, "p_OM[0]"),
+    "string number": ({"targets": [_target(p_OM=["0.01", 0, 0])]}, "p_OM[0]"),
+    "boolean": ({"targets": [_target(p_OM=[True, 0, 0])]}, "p_OM[0]"),
+    "millimetres": ({"targets": [_target(p_OM=[12.0, 3.0, 0.0])]}, "0.2 m"),
+    "just out of range": ({"targets": [_target(p_OM=[0.15, 0.15, 0.0])]}, "p_OM"),
+    "two coordinates": ({"targets": [_target(p_OM=[0.0, 0.0])]}, "p_OM"),
+    "four coordinates": ({"targets": [_target(p_OM=[0.0, 0.0, 0.0, 0.0])]}, "p_OM"),
+    "zero normal": ({"targets": [_target(n_OM=[0, 0, 0])]}, "non-zero"),
+    "tiny normal": ({"targets": [_target(n_OM=[1e-9, 0, 0])]}, "n_OM"),
+    "NaN normal": (b'{"targets": [{"name": "a", "p_OM": [0,0,0], "n_OM": [NaN,0,1]}]}',
+                   "n_OM[0]"),
+    "duplicate names": ({"targets": [_target(), _target()]}, "repeated: s1"),
+    "unknown target key": ({"targets": [_target(depth=0.01)]}, "targets[0].depth"),
+    "unknown top key": ({"targets": [], "replace": True}, "replace: unknown key"),
+    "too many": ({"targets": [_target(name=f"t{i}") for i in range(65)]}, "64"),
+    "bad name": ({"targets": [_target(name="a b")]}, "name"),
+    "empty name": ({"targets": [_target(name="")]}, "name"),
+    "long name": ({"targets": [_target(name="x" * 65)]}, "name"),
+    "missing p_OM": ({"targets": [{"name": "a"}]}, "p_OM: Field required"),
+    "missing targets": ({}, "targets: Field required"),
+    "not an object": ([1, 2], "body"),
+    "malformed JSON": (b'{"targets": [', "not valid JSON"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_TARGETS))
+async def test_bad_targets_are_refused_with_a_reason(client, rig, case):
+    """issue 4 REST: non-finite, out-of-range, mis-shaped, duplicate, unknown-key, too many
+    targets or malformed JSON are answered 4xx with a reason naming the field; the core is
+    never called and its targets are unchanged; the refusal is audited."""
+    body, reason = BAD_TARGETS[case]
+    before = rig.ops.targets()
+    if isinstance(body, bytes):
+        r = await client.post("/targets", headers=rig.op | {"content-type": "application/json"},
+                              content=body)
+    else:
+        r = await client.post("/targets", headers=rig.op, json=body)
+    assert r.status_code == (400 if case == "malformed JSON" else 422), r.text
+    detail = r.json()["detail"]
+    assert isinstance(detail, str) and reason in detail, detail
+    assert rig.ops.calls == [] and rig.ops.targets() == before
+    (rec,) = audit_lines(rig)
+    assert rec["status"] == r.status_code and rec["result"] == detail
+    assert rec["who"] == "operator" and rec["body"]
+
+
+async def test_targets_are_normalised_and_stored(client, rig):
+    """issue 4 REST: accepted targets reach the core as SutureTarget with a unit n_OM."""
+    r = await client.post("/targets", headers=rig.op, json=GOOD_TARGETS)
+    assert r.status_code == 200
+    s1, s2 = rig.ops.targets()
+    assert s1.n_OM is None and s2.n_OM == (0.0, 0.0, 1.0)
+    r = await client.get("/targets", headers=rig.obs)
+    assert r.json()["targets"][1]["p_OM"] == [0.0, -0.01, 0.005]
+
+
+async def test_unknown_procedure_action_is_422(client, rig):
+    """issue 4 REST: POST /procedure/<other> is 422 naming the allowed actions; nothing
+    runs."""
+    r = await client.post("/procedure/launch", headers=rig.op)
+    assert r.status_code == 422 and "'start'" in r.json()["detail"]
+    assert rig.ops.calls == []
+
+
+# -- audit ---------------------------------------------------------------------------------
+async def test_every_command_is_audited_and_earlier_lines_stay(client, rig):
+    """issue 4 audit: each command, accepted or refused (401, 403, 422, 409), adds exactly
+    one line, after the lines already in the file, which stay unchanged."""
+    rig.audit.close()
+    rig.path.write_text('{"earlier": "run"}\n')
+    rig.audit.open()
+    await client.post("/procedure/start")                                      # 401
+    await client.post("/procedure/start", headers=rig.obs)                     # 403
+    await client.post("/targets", headers=rig.op, json={"targets": [{}]})      # 422
+    await client.post("/reset", headers=rig.op)                                # 409
+    await client.post("/procedure/start", headers=rig.op)                      # 200
+    await client.get("/status", headers=rig.obs)                               # not a command
+    lines = rig.path.read_text().splitlines()
+    assert lines[0] == '{"earlier": "run"}'
+    recs = [json.loads(x) for x in lines[1:]]
+    assert [x["status"] for x in recs] == [401, 403, 422, 409, 200]
+    assert recs[0]["who"] is None and recs[0]["client"]
+    assert all(x["method"] == "POST" for x in recs)
+
+
+@pytest.mark.parametrize("broken", ["closed", "disk full"])
+async def test_audit_failure_refuses_commands_with_503(client, rig, broken):
+    """issue 4 audit: when the audit log cannot be written every command except the e-stop
+    is refused with 503 and the core is not called; the e-stop still runs (safety first)
+    and says it was not audited."""
+    if broken == "closed":
+        rig.audit.close()
+    else:
+        rig.audit.min_free_bytes = 1 << 62
+    for path in POSTS:
+        if path == "/estop":
+            continue
+        r = await client.post(path, headers=rig.op, json=body_for(path))
+        assert r.status_code == 503 and "audit log" in r.json()["detail"], r.text
+    assert rig.ops.calls == [] and rig.ops.state == "IDLE"
+    r = await client.post("/estop", headers=rig.op)
+    if broken == "closed":
+        assert r.json()["audited"] is False and r.headers["x-audit"] == "failed"
+    assert r.status_code == 200 and rig.ops.state == "ESTOP"
+
+
+async def test_record_lost_after_running_blocks_until_written(client, rig, monkeypatch):
+    """issue 4 audit: if the record of a command that ran cannot be written, the reply says
+    so (X-Audit: failed), later commands get 503 without reaching the core until the
+    record is written, and then the log holds every record in order."""
+    real = audit_mod.os.write
+
+    def full(fd, data):
+        raise OSError(28, "No space left on device")
+
+    await client.post("/estop", headers=rig.op)
+    monkeypatch.setattr(audit_mod.os, "write", full)
+    r = await client.post("/reset", headers=rig.op)
+    assert r.status_code == 200 and r.headers["x-audit"] == "failed"
+    assert r.json()["audited"] is False
+    r = await client.post("/procedure/start", headers=rig.op)
+    assert r.status_code == 503
+    assert rig.ops.calls == [("estop", "operator", "operator e-stop"), ("reset", "operator")]
+    monkeypatch.setattr(audit_mod.os, "write", real)
+    r = await client.post("/procedure/start", headers=rig.op)
+    assert r.status_code == 200
+    assert [(x["path"], x["status"]) for x in audit_lines(rig)] == [
+        ("/estop", 200), ("/reset", 200), ("/procedure/start", 503), ("/procedure/start", 200)]
+
+
+# -- OpenAPI -------------------------------------------------------------------------------
+async def test_openapi_declares_the_bearer_scheme(client):
+    """issue 4 REST: /openapi.json declares HTTP bearer auth and the endpoints; /docs is
+    served."""
+    spec = (await client.get("/openapi.json")).json()
+    schemes = spec["components"]["securitySchemes"]
+    assert {"type": "http", "scheme": "bearer"}.items() <= next(iter(schemes.values())).items()
+    assert {"/health", "/status", "/poses", "/targets", "/estop", "/reset",
+            "/procedure/{action}"} <= set(spec["paths"])
+    assert spec["paths"]["/reset"]["post"]["security"]
+    assert (await client.get("/docs")).status_code == 200
+
+
+def test_jsonable_makes_plain_json():
+    """issue 4 REST: core values (numpy, models, NaN) become standard JSON."""
+    out = jsonable({"a": np.arange(3), "b": np.float32(1.5), "c": float("nan"), 1: (True,),
+                    "t": SutureTarget(name="x", p_OM=(0, 0, 0))})
+    assert json.dumps(out, allow_nan=False)
+    assert out == {"a": [0, 1, 2], "b": 1.5, "c": None, "1": [True],
+                   "t": {"name": "x", "p_OM": [0.0, 0.0, 0.0], "n_OM": None}}
+    with pytest.raises(TypeError):
+        jsonable(object())
+
+
+# -- websocket telemetry -------------------------------------------------------------------
+@contextlib.asynccontextmanager
+async def running(app) -> AsyncIterator[int]:
+    """The app served by the real serve() on 127.0.0.1 (a free port) for the block."""
+    async with anyio.create_task_group() as tg:
+        port = await tg.start(serve, app, "127.0.0.1", 0)
+        try:
+            yield port
+        finally:
+            tg.cancel_scope.cancel()
+
+
+async def _ws_messages(rig, query: str = "", headers: dict | None = None,
+                       n: int = 3) -> list[dict]:
+    """``n`` telemetry messages; a refused handshake raises websockets.InvalidStatus."""
+    refused = None
+    async with running(rig.app) as port:
+        try:
+            async with websockets.connect(f"ws://127.0.0.1:{port}/telemetry{query}",
+                                          additional_headers=headers) as ws:
+                return [json.loads(await ws.recv()) for _ in range(n)]
+        except websockets.InvalidStatus as exc:
+            refused = exc  # raised outside the task group, not wrapped in a group
+    raise refused
+
+
+@pytest.mark.parametrize("how", ["header", "query"])
+async def test_telemetry_streams_snapshots(rig, how):
+    """issue 4 REST: WS /telemetry accepts an observer token in the Authorization header or
+    ?token= (browsers), sends ops.telemetry() as standard JSON repeatedly, and the connect
+    is audited without the token."""
+    if how == "header":
+        msgs = await _ws_messages(rig, headers=rig.obs)
+    else:
+        msgs = await _ws_messages(rig, f"?token={rig.tokens['observer']}")
+    assert [m["tick"] for m in msgs] == [1, 2, 3]
+    assert msgs[0] == {"tick": 1, "state": "IDLE", "p": [0.0, 0.0, 0.0], "err": None}
+    (rec,) = audit_lines(rig)
+    assert (rec["method"], rec["path"], rec["status"], rec["who"]) == \
+        ("WS", "/telemetry", 101, "observer")
+    assert rig.tokens["observer"] not in rig.path.read_text()
+
+
+@pytest.mark.parametrize("how", ["none", "bad header", "bad query", "audit closed"])
+async def test_telemetry_refusals(rig, how):
+    """issue 4 REST: WS /telemetry without a valid token is refused at the handshake with
+    HTTP 401 (503 when the connect cannot be audited); nothing is streamed, and the
+    refusal is audited where the log works."""
+    query, headers = "", None
+    if how == "bad header":
+        headers = {"Authorization": "Bearer nope"}
+    elif how == "bad query":
+        query = "?token=nope"
+    elif how == "audit closed":
+        headers = rig.obs
+        rig.audit.close()
+    with pytest.raises(websockets.InvalidStatus) as ei:
+        await _ws_messages(rig, query, headers)
+    want = 503 if how == "audit closed" else 401
+    assert ei.value.response.status_code == want
+    assert rig.ops.ticks == 0
+    if want == 401:
+        assert ei.value.response.headers["WWW-Authenticate"].startswith("Bearer")
+        (rec,) = audit_lines(rig)
+        assert (rec["method"], rec["status"], rec["who"]) == ("WS", 401, None)
+
+
+async def test_telemetry_failure_closes_with_1011(rig, caplog):
+    """issue 4 REST: if the core cannot give a snapshot the stream ends with close code
+    1011 (internal error) naming the failure, and the error is logged."""
+    def broken() -> dict:
+        raise RuntimeError("no poses yet")
+
+    rig.ops.telemetry = broken
+    async with running(rig.app) as port:
+        async with websockets.connect(f"ws://127.0.0.1:{port}/telemetry",
+                                      additional_headers=rig.obs) as ws:
+            with pytest.raises(websockets.ConnectionClosedError) as ei:
+                await ws.recv()
+    assert ei.value.rcvd.code == 1011 and "RuntimeError" in ei.value.rcvd.reason
+    assert "telemetry snapshot failed" in caplog.text
+
+
+async def test_telemetry_rate_is_configurable(rig):
+    """issue 4 REST: snapshots come at telemetry_hz (here 50 Hz: 10 take about 0.2 s)."""
+    async with running(rig.app) as port:
+        async with websockets.connect(f"ws://127.0.0.1:{port}/telemetry",
+                                      additional_headers=rig.obs) as ws:
+            await ws.recv()
+            t0 = time.monotonic()
+            for _ in range(10):
+                await ws.recv()
+            dt = time.monotonic() - t0
+    assert 0.15 < dt < 1.0, dt  # loose above: a loaded CI machine may lag
+
+
+# -- serve() -------------------------------------------------------------------------------
+async def test_serve_runs_on_the_daemon_loop_and_stops_on_cancel(rig):
+    """issue 4 REST: serve() runs uvicorn inside an anyio task group on 127.0.0.1 port 0,
+    reports the real port only once it is listening, installs no signal handlers, answers
+    GET /health and a websocket over loopback, and on cancellation closes the websocket and
+    stops listening before the task group exits."""
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    with anyio.fail_after(10):
+        async with anyio.create_task_group() as tg:
+            port = await tg.start(serve, rig.app, "127.0.0.1", 0)
+            assert port > 0
+            assert {s: signal.getsignal(s) for s in before} == before
+            async with httpx.AsyncClient() as c:
+                r = await c.get(f"http://127.0.0.1:{port}/health")
+            assert r.status_code == 200 and r.json()["ok"] is True
+            ws = await websockets.connect(f"ws://127.0.0.1:{port}/telemetry",
+                                          additional_headers=rig.obs)
+            assert json.loads(await ws.recv())["tick"] >= 1
+            tg.cancel_scope.cancel()
+        # the server closed the stream (1012: service restart) on its way down
+        with pytest.raises(websockets.ConnectionClosed) as ei:
+            while True:
+                await ws.recv()
+        assert ei.value.rcvd is not None and ei.value.rcvd.code == 1012
+        await ws.close()
+    assert {s: signal.getsignal(s) for s in before} == before
+    with socket.socket() as s, pytest.raises(ConnectionRefusedError):
+        s.connect(("127.0.0.1", port))
+
+
+@pytest.mark.parametrize("host", ["0.0.0.0", "::", "192.168.1.10", "robot.local"])
+async def test_serve_refuses_remote_hosts_unless_allowed(rig, host):
+    """issue 4 REST: serve() refuses a non-loopback host unless allow_remote (the daemon
+    binds 127.0.0.1 unless configured otherwise)."""
+    async with anyio.create_task_group() as tg:
+        with pytest.raises(ValueError, match="allow_remote"):
+            await tg.start(serve, rig.app, host, 0)
+
+
+async def test_serve_reports_a_busy_port(rig):
+    """issue 4 REST: a port already in use raises OSError naming host and port."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        async with anyio.create_task_group() as tg:
+            with pytest.raises(OSError, match=f"127.0.0.1:{port}"):
+                await tg.start(serve, rig.app, "127.0.0.1", port)
+
+
+# -- configuration ---------------------------------------------------------------------------
+@pytest.mark.parametrize("api, where", [
+    ({}, None),
+    ({"host": "::1", "port": 8751, "telemetry_hz": 5.0}, None),
+    ({"host": "0.0.0.0", "allow_remote": True}, None),
+    ({"host": "0.0.0.0"}, "[api] host: '0.0.0.0' is not a loopback address"),
+    ({"host": "robot.local"}, "[api] host"),
+    ({"host": "0.0.0.0", "allow_remote": "yes"}, "[api] allow_remote"),
+    ({"telemetry_hz": 0.0}, "[api] telemetry_hz"),
+    ({"telemetry_hz": 1000.0}, "[api] telemetry_hz"),
+    ({"tokens_file": ""}, "[api] tokens_file"),
+    ({"bind": "127.0.0.1"}, "[api] bind: unknown key"),
+])
+def test_api_section_binds_loopback_unless_allowed(tmp_path, api, where):
+    """issue 4 config: [api] accepts tokens_file, audit_log, telemetry_hz (1..100 Hz) and
+    allow_remote; a non-loopback host is an error naming [api] host unless allow_remote."""
+    from oralnav.config.daemon import ApiSection
+    from oralnav.config.errors import ConfigError
+    from oralnav.config.loader import validate
+
+    path = tmp_path / "d.toml"
+    if where is None:
+        sec = validate(ApiSection, api, path, "api")
+        assert sec.audit_log == "oralnav-audit.jsonl" and sec.tokens_file is None
+        return
+    with pytest.raises(ConfigError) as ei:
+        validate(ApiSection, api, path, "api")
+    assert str(ei.value).startswith(f"{path}: {where}"), str(ei.value)
