@@ -6,9 +6,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from . import navigation, render
+from . import control, navigation, render
 
-BENCHES = {"render": render.main, "navigation": navigation.main}
+BENCHES = {"render": render.main, "navigation": navigation.main, "control": control.main}
 
 
 def main() -> int:

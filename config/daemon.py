@@ -44,7 +44,14 @@ class CellSection(Strict):
 
 
 class ControlSection(Strict):
+    """The control loop (docs/control_loop.md)."""
+
     rate_hz: Annotated[Float, Field(ge=10, le=1000)] = 500.0
+    # SCHED_FIFO priority for the control process (0: normal scheduling); needs
+    # LimitRTPRIO in the service unit or root
+    realtime_priority: Annotated[Int, Field(ge=0, le=99)] = 0
+    # pin the control process to this CPU (None: let the kernel place it)
+    cpu: Annotated[Int, Field(ge=0, le=1023)] | None = None
 
 
 def _iso_speed(v: float) -> float:

@@ -305,9 +305,10 @@ def _track_replay(args: argparse.Namespace, tracker, sources: dict[str, Path]) -
 
 # -- oralnav bench --------------------------------------------------------------------
 def cmd_bench(args: argparse.Namespace) -> int:
-    from oralnav.bench import navigation
+    from oralnav.bench import control, navigation
 
-    navigation.main(Path(args.out), quick=args.quick)
+    bench = {"navigation": navigation, "control": control}[args.cmd]
+    bench.main(Path(args.out), quick=args.quick)
     return 0
 
 
@@ -377,6 +378,11 @@ def build_parser() -> argparse.ArgumentParser:
     nv.add_argument("--quick", action="store_true", help="fewer frames (about 2-3 minutes)")
     nv.add_argument("--out", required=True, help="folder for navigation.json and charts")
     nv.set_defaults(func=cmd_bench)
+    cl = bn.add_parser("control", help="control-loop period jitter, thread against process, "
+                                       "with tracking at full rate (minutes)")
+    cl.add_argument("--quick", action="store_true", help="8 s per run instead of 60 s")
+    cl.add_argument("--out", required=True, help="folder for control.json and its chart")
+    cl.set_defaults(func=cmd_bench)
     return p
 
 

@@ -1,0 +1,299 @@
+"""The control loop: at a fixed rate, read the newest goal, check safety, servo the arm.
+
+``ControlLoop.step(now)`` is one period, with no waiting and no I/O of its own (the drivers
+do theirs, non-blocking). It runs in one of two ways:
+
+- ``ControlProcess``: a process of its own that owns the arm and end-effector drivers and
+  calls ``step`` on the wall clock at the configured rate; the daemon talks to it only
+  through three shared records (``daemon/shm.py``). This is the production path: a thread
+  in the daemon's process missed its 2 ms period by up to 2-3 ms while tracking ran (GIL;
+  ``oralnav bench control`` charts both, docs/control_loop.md has the figures).
+- in-process, on a virtual clock: tests and the deterministic simulation call ``step``
+  themselves, advancing the simulated drivers between calls.
+
+Per period the loop (1) reads the arm and wrist state; (2) trips the latched stop on a stop
+request from the daemon, a disconnected or protective-stopped arm, a silent or faulted
+driver, a stale pose while moving, or repeated deadline misses; (3) when stopped, commands
+nothing at all; otherwise steps the servo setpoint toward the goal with the speed limits
+and sends it, or, when holding, only kicks the arm's watchdog.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from oralnav.safety.limits import SpeedLimiter
+from oralnav.safety.watchdogs import DeadlineWatchdog, DriverSilenceWatchdog, StalePoseWatchdog
+
+from .shm import SharedRecord, decode_reason, encode_reason
+
+log = logging.getLogger(__name__)
+
+#: Control modes the daemon may ask for.
+HOLD, MOVE = 0, 1
+
+#: A period off its nominal length by more than this counts as a miss in the status.
+MISS_S = 0.001
+#: Period-error histogram: bins of 25 us up to 5 ms, then one overflow bin.
+HIST_BIN_S = 25e-6
+HIST_BINS = 200
+
+#: The daemon -> loop record: the goal (base frame) and what the loop may do with it.
+NAV_DTYPE = np.dtype([
+    ("t_pose", "f8"),              # capture time (s, daemon clock) of the pose behind goal
+    ("goal", "f8", (4, 4)),        # T_B_tcp goal, m
+    ("mode", "i4"),                # HOLD or MOVE
+    ("near_point", "f8", (3,)),    # the patient (opener origin), base frame, m
+    ("near_valid", "?"),           # near_point is known: slow down near it
+    ("wrist_goal", "f8", (4,)),    # roll, pitch, yaw, jaw (rad)
+    ("wrist_valid", "?"),
+])
+
+#: The daemon -> loop commands. Counters, so a request is never lost between two reads.
+CMD_DTYPE = np.dtype([
+    ("stop_count", "i8"),
+    ("stop_reason", f"S{240}"),
+    ("clear_count", "i8"),         # bumped by the daemon after an authenticated reset
+    ("shutdown", "?"),
+])
+
+#: The loop -> daemon status.
+STATUS_DTYPE = np.dtype([
+    ("t", "f8"),                   # loop clock at the last period (s)
+    ("periods", "i8"),
+    ("T_B_tcp", "f8", (4, 4)),     # measured TCP, m
+    ("tcp_speed", "f8", (6,)),     # m/s, rad/s
+    ("setpoint", "f8", (4, 4)),    # last servo setpoint sent, m
+    ("arm_connected", "?"),
+    ("protective_stop", "?"),
+    ("emergency_stop", "?"),
+    ("wrist", "f8", (4,)),
+    ("t_wrist", "f8"),
+    ("latched", "?"),
+    ("stop_time", "f8"),
+    ("stop_reason", f"S{240}"),
+    ("stop_count_seen", "i8"),
+    ("clear_count_seen", "i8"),
+    ("motion_commands", "i8"),
+    ("t_last_motion", "f8"),
+    ("misses", "i8"),
+    ("err_last", "f8"),            # |period - nominal| of the last period (s)
+    ("err_max", "f8"),
+    ("hist", "i8", (HIST_BINS + 1,)),
+])
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """What the loop needs from the configuration (SI units; ``[control]`` and
+    ``[safety]`` of the daemon file, docs/safety.md)."""
+
+    rate_hz: float = 500.0
+    stale_pose: float = 0.1              # s: a pose older than this stops a move
+    driver_silence: float = 0.1          # s: a driver state older than this stops the arm
+    deadline_misses: int = 5             # consecutive late periods that stop the arm
+    max_period_lateness: float = 0.01    # s: one period this late stops the arm
+    max_wrist_speed: float = 1.0         # rad/s per joint
+
+    @property
+    def period(self) -> float:
+        return 1.0 / self.rate_hz
+
+    @classmethod
+    def from_config(cls, control: Any, safety: Any) -> LoopSettings:
+        """From the daemon file's ``[control]`` and ``[safety]`` sections."""
+        return cls(rate_hz=control.rate_hz, stale_pose=safety.stale_pose,
+                   driver_silence=safety.driver_silence,
+                   deadline_misses=safety.deadline_misses,
+                   max_period_lateness=safety.max_period_lateness)
+
+
+class ControlLoop:
+    """One control period at a time; see the module docstring.
+
+    ``arm`` and ``effector`` follow the driver contracts (``oralnav.drivers.arm.Arm``,
+    ``oralnav.drivers.effector.EndEffector``); ``effector`` may be None.
+    ``limiter`` (a :class:`~oralnav.safety.limits.SpeedLimiter`) steps the setpoint.
+    """
+
+    def __init__(self, arm: Any, effector: Any, settings: LoopSettings,
+                 nav: SharedRecord, cmd: SharedRecord, status: SharedRecord,
+                 limiter: SpeedLimiter, clock: Callable[[], float] | None = None) -> None:
+        self.arm, self.effector, self.s = arm, effector, settings
+        # the real clock, to time each period's work; None (virtual clock): work is instant
+        self._clock = clock
+        self.nav, self.cmd, self.status = nav, cmd, status
+        self.limiter = limiter
+        self._setpoint: np.ndarray | None = None
+        self._latched = False
+        self._stop_seen = int(cmd.read()["stop_count"])
+        self._clear_seen = int(cmd.read()["clear_count"])
+        self._deadline = DeadlineWatchdog(settings.period, settings.deadline_misses,
+                                          settings.max_period_lateness)
+        self._silence = DriverSilenceWatchdog(settings.driver_silence)
+        self._stale = StalePoseWatchdog(settings.stale_pose)
+        self._last_now: float | None = None
+        self._hist = np.zeros(HIST_BINS + 1, dtype=np.int64)
+        self._periods = self._misses = self._motion = 0
+        self._err_max = 0.0
+        self._t_motion = 0.0
+        self._stop_time = 0.0
+        self._stop_reason = ""
+
+    # -- one period ------------------------------------------------------------------
+    def step(self, now: float, lateness: float = 0.0) -> None:
+        """One period at ``now`` (s, loop clock), which started ``lateness`` s after its
+        scheduled time (the runner knows; in-process callers on a virtual clock pass 0)."""
+        s = self.s
+        err = 0.0
+        if self._last_now is not None:
+            err = abs((now - self._last_now) - s.period)
+            b = min(int(err / HIST_BIN_S), HIST_BINS)
+            self._hist[b] += 1
+            self._err_max = max(self._err_max, err)
+            self._misses += err > MISS_S
+        self._last_now = now
+        self._periods += 1
+        arm = self.arm.state()
+        wrist = self.effector.state() if self.effector is not None else None
+        nav = self.nav.read()
+        cmd = self.cmd.read()
+
+        if int(cmd["clear_count"]) != self._clear_seen:
+            self._clear_seen = int(cmd["clear_count"])
+            self._unlatch(arm)
+        reason = self._trip_reason(now, arm, wrist, nav, cmd)
+        if reason is not None and not self._latched:
+            self._latch(now, reason)
+        if not self._latched:
+            self._command(now, arm, nav)
+        self._publish(now, arm, wrist, err)
+        # finished how long after this period's end (its deadline); <= 0 is on time
+        self._deadline.period_done(self._clock_after(now) - (now - lateness + s.period), now)
+
+    def _trip_reason(self, now: float, arm: Any, wrist: Any, nav: np.void,
+                     cmd: np.void) -> str | None:
+        if int(cmd["stop_count"]) != self._stop_seen:
+            self._stop_seen = int(cmd["stop_count"])
+            return f"stop requested: {decode_reason(cmd['stop_reason'])}"
+        if not arm.connected:
+            return "arm disconnected"
+        if arm.emergency_stop:
+            return "arm emergency stop"
+        if arm.protective_stop:
+            return "arm protective stop"
+        self._silence.heartbeat("arm", arm.timestamp)
+        if wrist is not None:
+            if not wrist.connected:
+                return "end-effector disconnected"
+            if wrist.fault:
+                return f"end-effector fault: {wrist.fault}"
+            self._silence.heartbeat("end-effector", wrist.timestamp)
+        trips = self._silence.check(now) + self._deadline.check(now)
+        if int(nav["mode"]) == MOVE:  # a stale pose matters only while it steers a move
+            self._stale.fresh("goal", float(nav["t_pose"]))
+            trips += self._stale.check(now)
+        else:
+            self._stale.disarm("goal")
+        return "; ".join(f"{t.name}: {t.reason}" for t in trips) if trips else None
+
+    def _clock_after(self, now: float) -> float:
+        return self._clock() if self._clock is not None else now
+
+    def _latch(self, now: float, reason: str) -> None:
+        """Stop everything once; from here on the loop commands nothing until cleared."""
+        self._latched = True
+        self._stop_time, self._stop_reason = now, reason
+        log.warning("control loop stop: %s", reason)
+        for dev in (self.arm, self.effector):
+            if dev is None:
+                continue
+            try:
+                dev.stop()
+            except Exception:  # stop() must not raise, but the loop must outlive it
+                log.exception("stop() of %r raised", dev)
+
+    def _unlatch(self, arm: Any) -> None:
+        """The daemon cleared the stop after an authenticated reset: resume from where
+        the arm now is (never from the old setpoint)."""
+        self._latched = False
+        self._deadline = DeadlineWatchdog(self.s.period, self.s.deadline_misses,
+                                          self.s.max_period_lateness)
+        self._setpoint = np.array(arm.T_B_tcp, dtype=float)
+
+    def _command(self, now: float, arm: Any, nav: np.void) -> None:
+        s = self.s
+        if self._setpoint is None:
+            self._setpoint = np.array(arm.T_B_tcp, dtype=float)
+        if int(nav["mode"]) != MOVE:
+            self._setpoint = np.array(arm.T_B_tcp, dtype=float)
+            self.arm.kick()
+            return
+        near = np.array(nav["near_point"]) if bool(nav["near_valid"]) else None
+        self._setpoint = self.limiter.step(self._setpoint, np.array(nav["goal"]), s.period,
+                                           near=near)
+        self.arm.servo(self._setpoint, s.period)
+        if self.effector is not None and bool(nav["wrist_valid"]):
+            q = np.array(self.effector.state().joints, dtype=float)
+            step = np.clip(np.array(nav["wrist_goal"]) - q, -s.max_wrist_speed * s.period,
+                           s.max_wrist_speed * s.period)
+            self.effector.command(q + step)
+        self._motion += 1
+        self._t_motion = now
+
+    def _publish(self, now: float, arm: Any, wrist: Any, err: float) -> None:
+        self.status.write(
+            t=now, periods=self._periods, T_B_tcp=arm.T_B_tcp, tcp_speed=arm.tcp_speed,
+            setpoint=self._setpoint if self._setpoint is not None else arm.T_B_tcp,
+            arm_connected=arm.connected, protective_stop=arm.protective_stop,
+            emergency_stop=arm.emergency_stop,
+            wrist=wrist.joints if wrist is not None else np.zeros(4),
+            t_wrist=wrist.timestamp if wrist is not None else 0.0,
+            latched=self._latched, stop_time=self._stop_time,
+            stop_reason=encode_reason(self._stop_reason),
+            stop_count_seen=self._stop_seen, clear_count_seen=self._clear_seen,
+            motion_commands=self._motion, t_last_motion=self._t_motion,
+            misses=self._misses, err_last=err, err_max=self._err_max, hist=self._hist)
+
+
+def run_at_rate(step: Callable[[float, float], None], rate_hz: float,
+                should_stop: Callable[[], bool], clock: Callable[[], float] = time.monotonic,
+                spin_s: float = 2e-4) -> None:
+    """Call ``step(now, lateness)`` every ``1 / rate_hz`` s of ``clock`` until
+    ``should_stop()``; ``lateness`` is how long after its scheduled time the call starts.
+
+    Sleeps to within ``spin_s`` of each deadline, then yields in a short spin: the kernel's
+    timer slack alone puts wake-ups 50-100 us late. Deadlines stay on the original grid;
+    a period overrun by more than a whole period skips ahead rather than bursting.
+    """
+    period = 1.0 / rate_hz
+    t_next = clock() + period
+    while not should_stop():
+        while True:
+            rem = t_next - clock()
+            if rem <= 0:
+                break
+            time.sleep(rem - spin_s if rem > spin_s else 0)
+        now = clock()
+        step(now, now - t_next)
+        t_next += period
+        if now - t_next > period:
+            t_next = now + period
+
+
+def try_realtime(priority: int) -> str:
+    """Ask for SCHED_FIFO at ``priority`` for the calling process; say what happened."""
+    if priority <= 0:
+        return "normal scheduling (realtime_priority = 0)"
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        return f"SCHED_FIFO priority {priority}"
+    except (PermissionError, OSError, AttributeError) as exc:
+        return f"normal scheduling (SCHED_FIFO {priority} refused: {exc})"

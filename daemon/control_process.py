@@ -1,0 +1,201 @@
+"""The control loop in a process of its own, on the wall clock.
+
+The daemon creates the shared records, then ``ControlProcess.start()`` spawns a child that
+builds the arm and end-effector drivers itself (hardware connections belong to the
+process that uses them at 500 Hz), asks for real-time scheduling, and runs
+``ControlLoop.step`` at the configured rate until told to shut down. The child advances
+simulated drivers by the elapsed time each period (a real arm moves on its own).
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import anyio
+import numpy as np
+
+from oralnav.safety.limits import SpeedLimiter
+
+from .control_loop import (
+    CMD_DTYPE,
+    HOLD,
+    MOVE,
+    NAV_DTYPE,
+    STATUS_DTYPE,
+    ControlLoop,
+    LoopSettings,
+    run_at_rate,
+    try_realtime,
+)
+from .shm import SharedRecord, encode_reason
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DriverSpec:
+    """A driver to build in the child: registry backend name and its arguments."""
+
+    backend: str
+    options: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ProcessSpec:
+    arm: DriverSpec
+    effector: DriverSpec | None
+    settings: LoopSettings
+    limiter: SpeedLimiter
+    realtime_priority: int = 0
+    cpu: int | None = None             # pin the loop to this CPU when given
+
+
+def _build(kind: str, spec: DriverSpec, clock: Any) -> Any:
+    if kind == "arm":
+        from oralnav.drivers.arm import open_arm as opener
+    else:
+        from oralnav.drivers.effector import open_effector as opener
+    options = dict(spec.options)
+    if spec.backend == "sim":
+        options.setdefault("clock", clock)
+    return opener(spec.backend, **options)
+
+
+def _child(spec: ProcessSpec, names: dict[str, str], ready: Any) -> None:
+    """Entry point of the control process."""
+    import os
+
+    from oralnav.drivers.clock import WallClock
+
+    logging.basicConfig(level=logging.INFO, format="oralnavd control: %(message)s")
+    if spec.cpu is not None:
+        try:
+            os.sched_setaffinity(0, {spec.cpu})
+        except OSError as exc:
+            log.warning("cannot pin to CPU %s: %s", spec.cpu, exc)
+    sched = try_realtime(spec.realtime_priority)
+    nav = SharedRecord(NAV_DTYPE, names["nav"])
+    cmd = SharedRecord(CMD_DTYPE, names["cmd"])
+    status = SharedRecord(STATUS_DTYPE, names["status"])
+    clock = WallClock()
+    arm = _build("arm", spec.arm, clock)
+    eff = _build("effector", spec.effector, clock) if spec.effector else None
+    try:
+        anyio.run(arm.start)
+        if eff is not None:
+            anyio.run(eff.start)
+        loop = ControlLoop(arm, eff, spec.settings, nav, cmd, status, spec.limiter,
+                           clock=clock.now)
+        sims = [d for d in (arm, eff) if d is not None and hasattr(d, "advance")]
+        last = [clock.now()]
+
+        def step(now: float, lateness: float) -> None:
+            for d in sims:  # simulated physics: the devices move by the elapsed time
+                d.advance(now - last[0])
+            last[0] = now
+            loop.step(now, lateness)
+
+        ready.set()
+        log.info("running at %g Hz, %s", spec.settings.rate_hz, sched)
+        run_at_rate(step, spec.settings.rate_hz, lambda: bool(cmd.read()["shutdown"]),
+                    clock=clock.now)
+    finally:
+        for d in (arm, eff):
+            if d is None:
+                continue
+            try:
+                d.stop()
+                anyio.run(d.close)
+            except Exception:
+                log.exception("closing %r", d)
+        for r in (nav, cmd, status):
+            r.close()
+
+
+class ControlProcess:
+    """Owns the shared records and the child process; see the module docstring."""
+
+    def __init__(self, spec: ProcessSpec) -> None:
+        self.spec = spec
+        self.nav: SharedRecord | None = None
+        self.cmd: SharedRecord | None = None
+        self.status: SharedRecord | None = None
+        self._proc: mp.process.BaseProcess | None = None
+        self._stops = 0
+        self._clears = 0
+
+    async def start(self, timeout: float = 20.0) -> None:
+        """Create the records, spawn the child, and wait until its loop runs."""
+        self.nav = SharedRecord(NAV_DTYPE)
+        self.cmd = SharedRecord(CMD_DTYPE)
+        self.status = SharedRecord(STATUS_DTYPE)
+        ctx = mp.get_context("spawn")  # no inherited threads or locks from the daemon
+        ready = ctx.Event()
+        names = {"nav": self.nav.name, "cmd": self.cmd.name, "status": self.status.name}
+        self._proc = ctx.Process(target=_child, args=(self.spec, names, ready),
+                                 name="oralnavd-control", daemon=True)
+        self._proc.start()
+        deadline = time.monotonic() + timeout
+        while not ready.is_set():
+            if not self._proc.is_alive():
+                raise RuntimeError(f"control process exited during start "
+                                   f"(exit code {self._proc.exitcode})")
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"control process not running after {timeout:g} s")
+            await anyio.sleep(0.01)
+
+    @property
+    def alive(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
+    def request_stop(self, reason: str) -> None:
+        """Latched-stop handler: the loop stops the arm at its next period. Never blocks."""
+        if self.cmd is None:
+            return
+        self._stops += 1
+        self.cmd.write(stop_count=self._stops, stop_reason=encode_reason(reason))
+
+    def clear_stop(self) -> None:
+        """After an authenticated reset: let the loop command again."""
+        if self.cmd is not None:
+            self._clears += 1
+            self.cmd.write(clear_count=self._clears)
+
+    def set_goal(self, T_B_tcp: np.ndarray, t_pose: float, *, move: bool,
+                 near_point: np.ndarray | None = None, wrist: np.ndarray | None = None
+                 ) -> None:
+        """Publish the goal (``T_B_tcp``, m) computed from the pose captured at ``t_pose``;
+        ``move`` False holds still. ``near_point``: the patient (base frame, m)."""
+        if self.nav is None:
+            return
+        self.nav.write(goal=T_B_tcp, t_pose=t_pose, mode=MOVE if move else HOLD,
+                       near_point=near_point if near_point is not None else np.zeros(3),
+                       near_valid=near_point is not None,
+                       wrist_goal=wrist if wrist is not None else np.zeros(4),
+                       wrist_valid=wrist is not None)
+
+    def read_status(self) -> np.void | None:
+        return None if self.status is None else self.status.read()
+
+    async def close(self, timeout: float = 5.0) -> None:
+        """Shut the child down (it stops the arm first); idempotent."""
+        proc, self._proc = self._proc, None
+        if proc is not None:
+            if self.cmd is not None:
+                self.cmd.write(shutdown=True)
+            deadline = time.monotonic() + timeout
+            while proc.is_alive() and time.monotonic() < deadline:
+                await anyio.sleep(0.01)
+            if proc.is_alive():
+                log.error("control process did not exit in %g s; terminating it", timeout)
+                proc.terminate()
+                proc.join(1.0)
+        for name in ("nav", "cmd", "status"):
+            rec = getattr(self, name)
+            if rec is not None:
+                rec.close()
+                setattr(self, name, None)

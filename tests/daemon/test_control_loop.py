@@ -1,0 +1,230 @@
+"""Issue 4, control loop: it servoes toward the goal within the speed limits, and every
+fault it watches (stop request, stale pose, arm disconnect, protective stop, silent or
+faulted end-effector, late periods) stops the arm within two control periods of detection,
+with no motion command after the stop. On the virtual clock, in-process."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import anyio
+import numpy as np
+import pytest
+
+from oralnav.daemon.control_loop import (
+    CMD_DTYPE,
+    MOVE,
+    NAV_DTYPE,
+    STATUS_DTYPE,
+    ControlLoop,
+    LoopSettings,
+)
+from oralnav.daemon.control_process import ControlProcess, DriverSpec, ProcessSpec
+from oralnav.daemon.shm import SharedRecord, encode_reason
+from oralnav.drivers.arm.sim import SimArm
+from oralnav.drivers.clock import VirtualClock
+from oralnav.drivers.effector.sim import SimEffector
+from oralnav.safety.limits import SpeedLimiter
+
+SETTINGS = LoopSettings(rate_hz=500.0, stale_pose=0.1, driver_silence=0.05,
+                        deadline_misses=3, max_period_lateness=0.01)
+P = SETTINGS.period
+
+
+def _pose(x: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = [x, 0.0, 0.3]
+    return T
+
+
+class Cell:
+    """Sim arm and wrist, the three records and the loop, stepped on a virtual clock."""
+
+    def __init__(self) -> None:
+        self.clock = VirtualClock(10.0)
+        self.arm = SimArm(clock=self.clock, home=_pose())
+        self.wrist = SimEffector(clock=self.clock)
+        anyio.run(self.arm.start)
+        anyio.run(self.wrist.start)
+        self.nav, self.cmd, self.status = (SharedRecord(d) for d in
+                                           (NAV_DTYPE, CMD_DTYPE, STATUS_DTYPE))
+        self.loop = ControlLoop(self.arm, self.wrist, SETTINGS, self.nav, self.cmd,
+                                self.status, SpeedLimiter(0.25, 0.5))
+        self.fresh_pose = True
+
+    def goal(self, x: float) -> None:
+        self.nav.write(goal=_pose(x), t_pose=self.clock.now(), mode=MOVE)
+
+    def run(self, periods: int, each: Callable[[], None] | None = None,
+            lateness: float = 0.0) -> None:
+        for _ in range(periods):
+            self.clock.advance(P)
+            self.arm.advance(P)
+            self.wrist.advance(P)
+            if self.fresh_pose:
+                self.nav.write(t_pose=self.clock.now())
+            if each:
+                each()
+            self.loop.step(self.clock.now(), lateness)
+
+    def motion_after(self, t: float) -> list:
+        return [r for r in self.arm.command_log if r.time > t and r.kind in ("servo", "speed")]
+
+    def close(self) -> None:
+        for r in (self.nav, self.cmd, self.status):
+            r.close()
+
+
+@pytest.fixture
+def cell():
+    c = Cell()
+    yield c
+    c.close()
+
+
+def test_servoes_to_the_goal_within_the_speed_limit(cell: Cell) -> None:
+    """The TCP reaches a goal 5 cm away, never faster than the 0.25 m/s limit, and the
+    status record reports the measured pose and the motion commands sent."""
+    cell.goal(0.05)
+    xs = []
+    for _ in range(600):  # the sim arm lags the setpoint (1 m/s^2 acceleration)
+        cell.run(1)
+        xs.append(cell.arm.state().T_B_tcp[0, 3])
+    speeds = np.abs(np.diff(xs)) / P
+    assert speeds.max() <= 0.25 + 1e-9
+    assert abs(xs[-1] - 0.05) < 1e-6
+    st = cell.status.read()
+    assert not st["latched"] and st["motion_commands"] == 600
+    np.testing.assert_allclose(st["T_B_tcp"], cell.arm.state().T_B_tcp)
+
+
+def _assert_stopped(cell: Cell, detected_at: float, reason_part: str) -> None:
+    st = cell.status.read()
+    assert st["latched"], "the loop did not stop"
+    assert reason_part in bytes(st["stop_reason"]).decode()
+    assert st["stop_time"] <= detected_at + 2 * P + 1e-9
+    stops = [r for r in cell.arm.command_log if r.kind == "stop"]
+    assert stops and stops[0].time <= detected_at + 2 * P + 1e-9
+    assert cell.motion_after(stops[0].time) == []
+
+
+def test_stop_request_stops_at_the_next_period(cell: Cell) -> None:
+    """A latched stop from the daemon (shared record) stops the arm within two periods."""
+    cell.goal(0.05)
+    cell.run(10)
+    t = cell.clock.now()
+    cell.cmd.write(stop_count=1, stop_reason=encode_reason("operator e-stop"))
+    cell.run(20)
+    _assert_stopped(cell, t, "operator e-stop")
+
+
+def test_stale_pose_stops_a_move_but_not_a_hold(cell: Cell) -> None:
+    """No fresh pose for stale_pose while moving stops the arm; holding still does not
+    need one."""
+    cell.nav.write(goal=_pose(), t_pose=cell.clock.now(), mode=0)
+    cell.fresh_pose = False
+    cell.run(100)  # 0.2 s holding with an old pose
+    assert not cell.status.read()["latched"]
+    cell.goal(0.05)
+    t_pose = cell.clock.now()
+    cell.run(100)
+    _assert_stopped(cell, t_pose + SETTINGS.stale_pose, "stale")
+
+
+@pytest.mark.parametrize("fault, reason", [
+    ("inject_disconnect", "disconnected"),
+    ("inject_protective_stop", "protective stop"),
+    ("inject_emergency_stop", "emergency stop"),
+])
+def test_arm_faults_stop_the_loop(cell: Cell, fault: str, reason: str) -> None:
+    """An arm that drops its link, protective-stops or e-stops is seen in the next period;
+    the loop sends no motion command after it."""
+    cell.goal(0.05)
+    cell.run(10)
+    t = cell.clock.now()
+    getattr(cell.arm, fault)()
+    cell.run(10)
+    _assert_stopped(cell, t, reason)
+
+
+def test_silent_end_effector_stops_the_arm(cell: Cell) -> None:
+    """An end-effector whose state stops updating for driver_silence stops the arm."""
+    cell.goal(0.05)
+    cell.run(10)
+    t = cell.clock.now()
+    cell.wrist.inject_silence()
+    cell.run(60)
+    _assert_stopped(cell, t + SETTINGS.driver_silence, "silent")
+
+
+def test_end_effector_fault_stops_the_arm(cell: Cell) -> None:
+    """A wrist reporting a fault stops the arm at once, with the wrist's message."""
+    cell.goal(0.05)
+    cell.run(10)
+    t = cell.clock.now()
+    cell.wrist.inject_fault("tendon 2 slack")
+    cell.run(5)
+    _assert_stopped(cell, t, "tendon 2 slack")
+
+
+def test_late_periods_stop_the_arm(cell: Cell) -> None:
+    """deadline_misses consecutive periods that finish after their deadline stop the arm;
+    fewer do not."""
+    cell.goal(0.05)
+    cell.run(2, lateness=1.5 * P)
+    cell.run(5)
+    assert not cell.status.read()["latched"]
+    t = cell.clock.now()
+    cell.run(SETTINGS.deadline_misses, lateness=1.5 * P)
+    cell.run(2)
+    _assert_stopped(cell, t + SETTINGS.deadline_misses * P, "late")
+
+
+def test_clear_resumes_from_where_the_arm_is(cell: Cell) -> None:
+    """After the daemon clears a stop, the loop commands again, starting from the measured
+    pose rather than the pre-stop setpoint, so nothing jumps."""
+    cell.goal(0.05)
+    cell.run(40)
+    cell.cmd.write(stop_count=1, stop_reason=encode_reason("test"))
+    cell.run(50)
+    here = cell.arm.state().T_B_tcp.copy()
+    cell.cmd.write(clear_count=1)
+    cell.goal(0.05)
+    cell.run(1)
+    st = cell.status.read()
+    assert not st["latched"]
+    assert np.linalg.norm(st["setpoint"][:3, 3] - here[:3, 3]) <= 0.25 * P + 1e-9
+    cell.run(300)
+    assert abs(cell.arm.state().T_B_tcp[0, 3] - 0.05) < 1e-6
+
+
+async def test_control_process_runs_and_stops_on_request() -> None:
+    """The spawned control process servoes the sim arm on the wall clock, stops it on a
+    stop request within a few periods, sends nothing after, and exits on close."""
+    proc = ControlProcess(ProcessSpec(
+        arm=DriverSpec("sim", {"home": _pose()}), effector=DriverSpec("sim"),
+        settings=LoopSettings(rate_hz=500.0, stale_pose=0.5, driver_silence=0.2),
+        limiter=SpeedLimiter(0.25, 0.5)))
+    await proc.start()
+    try:
+        import time
+        for _ in range(25):  # 0.25 s of fresh goals
+            proc.set_goal(_pose(0.02), time.monotonic(), move=True)
+            await anyio.sleep(0.01)
+        st = proc.read_status()
+        assert st["periods"] > 50 and st["motion_commands"] > 50 and not st["latched"]
+        assert st["T_B_tcp"][0, 3] > 0.0
+        t0 = time.monotonic()
+        proc.request_stop("test stop")
+        while not proc.read_status()["latched"]:
+            assert time.monotonic() - t0 < 1.0, "no stop within 1 s"
+            await anyio.sleep(0.001)
+        sent = int(proc.read_status()["motion_commands"])
+        await anyio.sleep(0.1)
+        st = proc.read_status()
+        assert int(st["motion_commands"]) == sent
+        assert "test stop" in bytes(st["stop_reason"]).decode()
+        assert st["stop_time"] - t0 < 0.05  # the loop saw it within a few periods
+    finally:
+        await proc.close()
+    assert not proc.alive
