@@ -101,8 +101,13 @@ def _child(spec: ProcessSpec, names: dict[str, str], ready: Any) -> None:
 
         ready.set()
         log.info("running at %g Hz, %s", spec.settings.rate_hz, sched)
-        run_at_rate(step, spec.settings.rate_hz, lambda: bool(cmd.read()["shutdown"]),
-                    clock=clock.now)
+        parent = os.getppid()
+
+        def should_stop() -> bool:
+            # a daemon that died without shutting us down must not leave the arm servoing
+            return bool(cmd.read()["shutdown"]) or os.getppid() != parent
+
+        run_at_rate(step, spec.settings.rate_hz, should_stop, clock=clock.now)
     finally:
         for d in (arm, eff):
             if d is None:
@@ -158,6 +163,12 @@ class ControlProcess:
             return
         self._stops += 1
         self.cmd.write(stop_count=self._stops, stop_reason=encode_reason(reason))
+
+    @property
+    def clears(self) -> int:
+        """Clear requests sent so far; the status record's ``clear_count_seen`` reaches it
+        once the loop has acted on the last one."""
+        return self._clears
 
     def clear_stop(self) -> None:
         """After an authenticated reset: let the loop command again."""

@@ -1,9 +1,12 @@
 """``oralnavd``: the navigation and control daemon.
 
-For now (foundation issue) it loads and validates the configuration and every file it
-names, and, with ``--demo`` on the simulated cell, renders what the stereo camera and the
-endoscope see and checks OpenCV's stock ChArUco detector against the ground truth. The
-anyio task graph, drivers, control loop, safety and REST API arrive with the daemon issue.
+It loads and validates the configuration and every file it names, then serves the cell:
+the control loop in its own process, the safety supervisor and the operator REST API in
+one anyio task group (``daemon/service.py``), until SIGTERM, which stops the robot first.
+``--check`` only validates. ``--demo`` on the simulated cell renders what the stereo camera
+and the endoscope see, tracks the fields and checks OpenCV's stock ChArUco detector
+against the ground truth (the two-stage navigation job replaces it with issue 4's next
+part).
 
     oralnavd [--config FILE] [--check] [--demo] [--api-port N] [--json]
 """
@@ -12,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import time
 from collections.abc import Sequence
@@ -164,13 +168,20 @@ def run(argv: Sequence[str] | None = None) -> int:
                 err = (f"mean {r['mean_err_px']} px, max {r['max_err_px']} px"
                        if r.get("mean_err_px") is not None else "no corners")
                 print(f"    {name:9s} {r['found']:3d}/{r['truth']:3d} corners, {err}")
-        print("the daemon proper (task graph, control loop, REST API) is not built yet; "
-              "see docs/architecture.md")
+        print("run `oralnavd` without --demo to serve the cell (control loop, safety, "
+              "REST API); see docs/control_loop.md and docs/api.md")
     elif not args.check:
-        _log("the daemon proper is not built yet (foundation issue): configuration checked, "
-             "exiting")
+        import anyio
+
+        from .service import run_service
+        logging.basicConfig(level=logging.INFO, format="oralnavd: %(name)s: %(message)s")
+        return anyio.run(run_service, cfg, args.api_port)
     return 0
 
 
 def main() -> None:
     sys.exit(run())
+
+
+if __name__ == "__main__":
+    main()

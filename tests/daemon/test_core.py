@@ -1,0 +1,145 @@
+"""Issue 4, daemon core: the REST API over the real core and control process. Operators
+e-stop, reset, start and pause; observers cannot; requests in the wrong state get 409 and
+change nothing; a stop the control loop latches by itself, a stale pose and a pressed
+e-stop input become FAULT / ESTOP, and the robot stops."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import anyio
+import httpx
+import numpy as np
+import pytest
+
+from oralnav.config.daemon import load_config
+from oralnav.daemon.api import build_app
+from oralnav.daemon.audit import AuditLog
+from oralnav.daemon.auth import TokenStore
+from oralnav.daemon.control_loop import LoopSettings
+from oralnav.daemon.control_process import ControlProcess, DriverSpec, ProcessSpec
+from oralnav.daemon.core import DaemonCore
+from oralnav.drivers.io.sim import SimInputs
+from oralnav.safety.limits import SpeedLimiter
+from oralnav.safety.watchdogs import WatchdogSet
+
+
+def _home() -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = [0.0, 0.0, 0.3]
+    return T
+
+
+@pytest.fixture
+async def rig(tmp_path: Path):
+    cfg = load_config()
+    proc = ControlProcess(ProcessSpec(
+        arm=DriverSpec("sim", {"home": _home()}), effector=DriverSpec("sim"),
+        settings=LoopSettings(rate_hz=500.0, stale_pose=0.5, driver_silence=0.2),
+        limiter=SpeedLimiter(0.25, 0.5)))
+    await proc.start()
+    inputs = SimInputs()
+    await inputs.start()
+    core = DaemonCore(proc, WatchdogSet.from_settings(cfg.settings.safety, 0.002),
+                      inputs=inputs)
+    clear = TokenStore.generate(tmp_path / "tokens.toml")
+    tokens = TokenStore.from_file(tmp_path / "tokens.toml")
+    audit = AuditLog(tmp_path / "audit.jsonl").open()
+    app = build_app(core, tokens, audit)
+    client = httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t")
+    try:
+        core.supervise_once(time.monotonic())
+        yield core, client, clear, inputs, tmp_path / "audit.jsonl"
+    finally:
+        await client.aclose()
+        audit.close()
+        await inputs.close()
+        await proc.close()
+
+
+def _auth(clear: dict[str, str], role: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {clear[role]}"}
+
+
+async def _until(pred, timeout: float = 1.0) -> None:
+    t0 = time.monotonic()
+    while not pred():
+        assert time.monotonic() - t0 < timeout, "condition not reached in time"
+        await anyio.sleep(0.002)
+
+
+async def test_estop_reset_and_roles_over_rest(rig) -> None:
+    """An observer's e-stop is refused (403) and changes nothing; the operator's latches
+    ESTOP and the control loop stops; reset returns to IDLE and then READY."""
+    core, client, clear, _, audit_path = rig
+    assert core.supervisor.state.value == "READY"
+    r = await client.post("/estop", headers=_auth(clear, "observer"), json={"reason": "x"})
+    assert r.status_code == 403 and core.supervisor.state.value == "READY"
+    r = await client.post("/estop", headers=_auth(clear, "operator"), json={"reason": "drill"})
+    assert r.status_code == 200, r.text
+    assert core.supervisor.state.value == "ESTOP"
+    await _until(lambda: bool(core.control.read_status()["latched"]))
+    assert "drill" in core.control.read_status()["stop_reason"].decode()
+    r = await client.post("/procedure/start", headers=_auth(clear, "operator"))
+    assert r.status_code == 409 and core.supervisor.state.value == "ESTOP"
+    r = await client.post("/reset", headers=_auth(clear, "operator"))
+    assert r.status_code == 200, r.text
+    await _until(lambda: not bool(core.control.read_status()["latched"]))
+    core.supervise_once(time.monotonic())
+    assert core.supervisor.state.value == "READY"
+    lines = [json.loads(x) for x in audit_path.read_text().splitlines()]
+    assert [x["status"] for x in lines if x["path"] == "/estop"] == [403, 200]
+
+
+async def test_procedure_needs_targets_then_moves_only_while_running(rig) -> None:
+    """start without targets is 409; with targets the core runs, goals move the arm, and
+    after pause the loop holds (no goal is accepted)."""
+    core, client, clear, _, _ = rig
+    op = _auth(clear, "operator")
+    r = await client.post("/procedure/start", headers=op)
+    assert r.status_code == 409 and "targets" in r.json()["detail"]
+    body = {"targets": [{"name": "s1", "p_OM": [0.0, 0.03, -0.01]}]}
+    assert (await client.post("/targets", headers=op, json=body)).status_code == 200
+    assert (await client.post("/procedure/start", headers=op)).status_code == 200
+    goal = _home()
+    goal[0, 3] = 0.01
+    for _ in range(40):
+        assert core.set_goal(goal, time.monotonic())
+        await anyio.sleep(0.005)
+    assert core.control.read_status()["T_B_tcp"][0, 3] > 0.001
+    r = await client.post("/targets", headers=op, json=body)
+    assert r.status_code == 409  # not while running
+    assert (await client.post("/procedure/pause", headers=op)).status_code == 200
+    assert not core.set_goal(goal, time.monotonic())
+    sent = int(core.control.read_status()["motion_commands"])
+    await anyio.sleep(0.05)
+    assert int(core.control.read_status()["motion_commands"]) == sent
+
+
+async def test_loop_latch_stale_pose_and_estop_input_become_faults(rig) -> None:
+    """A stop the loop latched itself becomes FAULT with its reason; a stale pose trips
+    FAULT; a pressed e-stop input is ESTOP and blocks reset until released."""
+    core, client, clear, inputs, _ = rig
+    core.control.request_stop("arm protective stop (simulated)")
+    await _until(lambda: bool(core.control.read_status()["latched"]))
+    core.supervisor.stop.clear(time.monotonic(), "test")  # as if the loop tripped alone
+    core.supervise_once(time.monotonic())
+    assert core.supervisor.state.value == "FAULT"
+    assert "protective stop" in json.dumps(core.status()["safety"])
+    assert (await client.post("/reset", headers=_auth(clear, "operator"))).status_code == 200
+
+    now = time.monotonic()
+    core.publish_pose("opener", _home(), now, frame="C")
+    core.supervise_once(now + 0.05)
+    assert core.supervisor.state.value in ("IDLE", "READY")
+    core.supervise_once(now + 1.0)
+    assert core.supervisor.state.value == "FAULT"
+    assert "opener" in json.dumps(core.status()["safety"])
+
+    inputs.press_estop()
+    core.supervise_once(time.monotonic())
+    assert core.supervisor.state.value == "ESTOP"
+    r = await client.post("/reset", headers=_auth(clear, "operator"))
+    assert r.status_code == 409 and "e-stop" in r.json()["detail"]

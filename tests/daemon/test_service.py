@@ -1,0 +1,63 @@
+"""Issue 4, the service: ``oralnavd`` serves the simulated cell's REST API on loopback,
+and SIGTERM stops the robot first and then exits cleanly (status 0, control process gone,
+audit log intact)."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_sigterm_stops_the_robot_then_exits_cleanly(tmp_path: Path) -> None:
+    """Start oralnavd on the embedded sim configuration, check /health and an operator
+    command over HTTP, then SIGTERM: the daemon latches the stop, the control loop confirms
+    it, and the process exits 0 within a few seconds."""
+    port = _free_port()
+    env = dict(os.environ, STATE_DIRECTORY=str(tmp_path), RUNTIME_DIRECTORY=str(tmp_path))
+    proc = subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main",
+                             "--api-port", str(port)], env=env, cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        base = f"http://127.0.0.1:{port}"
+        while True:
+            assert proc.poll() is None, proc.stderr.read()
+            try:
+                if httpx.get(f"{base}/health", timeout=0.5).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert time.monotonic() < deadline, "the API never came up"
+            time.sleep(0.1)
+        tokens = dict(line.split() for line in (tmp_path / "tokens.txt").read_text()
+                      .splitlines())
+        head = {"Authorization": f"Bearer {tokens['operator']}"}
+        st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
+        assert st["control_loop"]["running"] is True
+        r = httpx.post(f"{base}/estop", headers=head, json={"reason": "test"}, timeout=2)
+        assert r.status_code == 200
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert re.search(r"SIGTERM: stopping the robot first", err), err
+    assert "stopped" in err
+    audit = (tmp_path / "oralnav-audit.jsonl").read_text().splitlines()
+    assert any('"/estop"' in line for line in audit)
