@@ -16,12 +16,11 @@ import abc
 import logging
 import math
 from dataclasses import dataclass
-from types import TracebackType
-from typing import Self
 
 import numpy as np
 
 from ..errors import DriverIOError
+from ..lifecycle import AsyncLifecycle
 
 __all__ = ["Arm", "ArmCommandError", "ArmState", "check_pose", "check_twist"]
 
@@ -126,7 +125,7 @@ def _positive(value: object, what: str, unit: str) -> float:
     return out
 
 
-class Arm(abc.ABC):
+class Arm(AsyncLifecycle, abc.ABC):
     """Abstract arm. Backends implement :meth:`state`, :meth:`kick`, ``_servo``, ``_speed``,
     ``_stop``, :meth:`start` and :meth:`close`.
 
@@ -195,22 +194,3 @@ class Arm(abc.ABC):
     @abc.abstractmethod
     async def close(self) -> None:
         """Stop the arm, then disconnect. Idempotent; safe before ``start()``."""
-
-    async def __aenter__(self) -> Self:
-        try:
-            await self.start()
-        except BaseException:
-            await self.close()
-            raise
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
-
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}(name={self.name!r})"

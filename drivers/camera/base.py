@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Generic, Self, TypeVar
 
 import numpy as np
 
 from ..errors import DriverError, DriverInitError, EndOfStream
+from ..lifecycle import AsyncLifecycle
 
 
 @dataclass(frozen=True, eq=False)
@@ -43,35 +43,13 @@ class CameraFrame:
 ItemT = TypeVar("ItemT")
 
 
-class FrameStream(Generic[ItemT]):
+class FrameStream(AsyncLifecycle, Generic[ItemT]):
     """``async with`` and ``async for`` over a source with ``start()``, ``read()`` and an
     idempotent ``close()``: a camera, or a set of cameras read in step. A failed
     ``start()`` closes what it opened; iteration ends at :class:`EndOfStream`."""
 
-    async def start(self) -> None:
-        raise NotImplementedError
-
     async def read(self) -> ItemT:
         raise NotImplementedError
-
-    async def close(self) -> None:
-        raise NotImplementedError
-
-    async def __aenter__(self) -> Self:
-        try:
-            await self.start()
-        except BaseException:
-            await self.close()  # release whatever a half-done start() opened
-            raise
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
 
     def __aiter__(self) -> Self:
         return self

@@ -12,11 +12,10 @@ from __future__ import annotations
 import abc
 import logging
 from dataclasses import dataclass
-from types import TracebackType
-from typing import Self
 
 import numpy as np
 
+from ..lifecycle import AsyncLifecycle
 from .kinematics import WristKinematics
 
 __all__ = ["EffectorState", "EndEffector"]
@@ -54,7 +53,7 @@ class EffectorState:
         object.__setattr__(self, "motors", _readonly(self.motors))
 
 
-class EndEffector(abc.ABC):
+class EndEffector(AsyncLifecycle, abc.ABC):
     """Abstract wrist. Backends implement :meth:`state`, ``_command``, ``_stop``,
     :meth:`start` and :meth:`close`; ``kinematics`` holds the coupling and limits."""
 
@@ -99,22 +98,3 @@ class EndEffector(abc.ABC):
     @abc.abstractmethod
     async def close(self) -> None:
         """Stop (hold), then disconnect. Idempotent; safe before ``start()``."""
-
-    async def __aenter__(self) -> Self:
-        try:
-            await self.start()
-        except BaseException:
-            await self.close()
-            raise
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
-
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}(name={self.name!r})"

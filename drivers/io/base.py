@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass, replace
-from types import TracebackType
-from typing import Self
+
+from ..lifecycle import AsyncLifecycle
 
 __all__ = ["InputState", "SafetyInputs"]
 
@@ -44,7 +44,7 @@ class InputState:
         return replace(self, estop_pressed=True, pedal_pressed=False)
 
 
-class SafetyInputs(abc.ABC):
+class SafetyInputs(AsyncLifecycle, abc.ABC):
     """Abstract safety inputs. Backends implement ``_read`` (the raw reading), ``start`` and
     ``close``; :meth:`state` applies the fail-safe rule so no backend can forget it."""
 
@@ -66,22 +66,3 @@ class SafetyInputs(abc.ABC):
     @abc.abstractmethod
     async def close(self) -> None:
         """Disconnect. Idempotent; safe before ``start()``."""
-
-    async def __aenter__(self) -> Self:
-        try:
-            await self.start()
-        except BaseException:
-            await self.close()
-            raise
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
-
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}(name={self.name!r})"

@@ -20,7 +20,8 @@ from oralnav.sim.scene import Scene
 from .helpers import edit, expect_config_error, write_file
 
 CONFIG = Path(__file__).resolve().parents[2] / "config"
-EXAMPLES = sorted((CONFIG / "examples").glob("*.toml"))
+# every example is a scene file except the cell file, which names two of them
+EXAMPLES = sorted(p for p in (CONFIG / "examples").glob("*.toml") if p.name != "sim_cell.toml")
 STEREO = CONFIG / "rigs" / "stereo.toml"
 CELL = CONFIG / "fields" / "cell.toml"
 
