@@ -16,8 +16,10 @@ from pydantic import Field, ValidationInfo, field_validator
 
 from oralnav.control.camera import Rig
 from oralnav.control.markers import MarkerField
+from oralnav.sim.cell import CellConfig
 from oralnav.sim.scene import Scene
 
+from .cell import load_cell_config
 from .fields import load_fields
 from .loader import Float, Int, Strict, read_toml, resolve_file, validate
 from .rig import load_rig
@@ -34,6 +36,9 @@ class CellSection(Strict):
     fields: str
     # validate_default: the check below must also run when scene is left out
     scene: str | None = Field(None, validate_default=True)
+    # the moving simulated cell (docs/formats.md, "Cell file"): what oralnavd's sim
+    # cameras render from the sim arm's state
+    sim_cell: str | None = None
 
     @field_validator("scene")
     @classmethod
@@ -197,6 +202,8 @@ class DaemonConfig:
     scene_path: Path | None
     #: the loaded scene file, when the configuration names one (validated at start too)
     scene: Scene | None = None
+    #: the loaded cell file ([cell] sim_cell), when the configuration names one
+    cell: CellConfig | None = None
 
 
 def default_config_path() -> Path:
@@ -219,5 +226,7 @@ def load_config(path: str | Path | None = None) -> DaemonConfig:
     fields = load_fields(resolve_file(path, "cell.fields", cell.fields))
     scene_path = resolve_file(path, "cell.scene", cell.scene) if cell.scene else None
     scene = load_scene(scene_path) if scene_path is not None else None
+    cell_cfg = (load_cell_config(resolve_file(path, "cell.sim_cell", cell.sim_cell))
+                if cell.sim_cell else None)
     return DaemonConfig(path=path, settings=doc, rig=rig, endoscope_rig=endo, fields=fields,
-                        scene_path=scene_path, scene=scene)
+                        scene_path=scene_path, scene=scene, cell=cell_cfg)

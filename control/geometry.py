@@ -67,6 +67,21 @@ def make_transform(R: np.ndarray | Rotation | None = None,
     return T
 
 
+def nearest_rigid(T: np.ndarray) -> np.ndarray:
+    """``T`` with its 3x3 block replaced by the nearest rotation (SVD projection): for
+    measured poses whose rotation has drifted a few 1e-7 from orthonormal, before they
+    enter chains that check rigidity strictly."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:  # a reflection is no pose: flip the weakest axis
+        U[:, -1] = -U[:, -1]
+        R = U @ Vt
+    out = np.array(T, dtype=float)
+    out[:3, :3] = R
+    out[3] = [0.0, 0.0, 0.0, 1.0]
+    return out
+
+
 def invert(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid transform (``T_b_a`` from ``T_a_b``), exact for rigid matrices."""
     R = T[..., :3, :3]

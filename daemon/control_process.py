@@ -100,7 +100,8 @@ def _child(spec: ProcessSpec, names: dict[str, str], ready: Any) -> None:
             loop.step(now, lateness)
 
         ready.set()
-        log.info("running at %g Hz, %s", spec.settings.rate_hz, sched)
+        cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "?"
+        log.info("running at %g Hz on CPU(s) %s, %s", spec.settings.rate_hz, cpus, sched)
         parent = os.getppid()
 
         def should_stop() -> bool:

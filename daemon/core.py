@@ -38,7 +38,7 @@ from .shm import decode_reason
 log = logging.getLogger(__name__)
 
 #: How often the supervisor task looks at everything (Hz).
-SUPERVISE_HZ = 200.0
+SUPERVISE_HZ = 50.0
 
 
 class DaemonCore:
@@ -57,6 +57,7 @@ class DaemonCore:
         self._targets: list[SutureTarget] = []
         self._poses: dict[str, dict[str, Any]] = {}
         self._rates: dict[str, float] = {}
+        self._watched: set[str] = set()   # poses whose staleness trips (what steers now)
         self._started = clock()
         #: what a running procedure reports (phase, progress), shown in /status
         self.procedure_info: dict[str, Any] = {}
@@ -74,9 +75,19 @@ class DaemonCore:
             self._poses[name] = {"T": np.array(T, dtype=float), "stamp": float(stamp),
                                  "frame": frame, "corners": int(corners),
                                  "sigma_mm": sigma_m * 1e3, "sigma_deg": sigma_deg}
-        self.watchdogs.poses.fresh(name, stamp)
+        if name in self._watched:
+            self.watchdogs.poses.fresh(name, stamp)
         if math.isfinite(sigma_m) and math.isfinite(sigma_deg):
             self.watchdogs.covariance.pose(name, sigma_m, sigma_deg)
+
+    def watch_poses(self, names: set[str]) -> None:
+        """Only these poses' staleness trips from now on (those the current stage steers
+        by: a field hidden on purpose, like the effector inside the mouth, is no fault)."""
+        with self._lock:
+            dropped = self._watched - names
+            self._watched = set(names)
+        for name in dropped:
+            self.watchdogs.poses.disarm(name)
 
     def camera_frame(self, name: str, counter: int) -> None:
         self.watchdogs.cameras.frame(name, counter, self.clock())

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import anyio
+import anyio.to_thread
 import numpy as np
 
 from oralnav.config.daemon import DaemonConfig
@@ -52,12 +53,14 @@ def _log(msg: str) -> None:
     print(f"oralnavd: {msg}", file=sys.stderr, flush=True)
 
 
-def load_tokens(cfg: DaemonConfig) -> TokenStore:
+def load_tokens(cfg: DaemonConfig) -> tuple[TokenStore, dict[str, str]]:
     """The configured tokens file, or, without one, fresh demo tokens written (0600) to the
-    runtime directory, whose path is printed so the operator can read them."""
+    runtime directory, whose path is printed so the operator can read them. Returns the
+    store and the clear demo tokens (empty with a configured file)."""
     api = cfg.settings.api
     if api.tokens_file:
-        return TokenStore.from_file(resolve_file(cfg.path, "api.tokens_file", api.tokens_file))
+        path = resolve_file(cfg.path, "api.tokens_file", api.tokens_file)
+        return TokenStore.from_file(path), {}
     runtime = os.environ.get("RUNTIME_DIRECTORY", "").split(":")[0]
     folder = Path(runtime) if runtime else Path(tempfile.mkdtemp(prefix="oralnavd-"))
     path = folder / "tokens.toml"
@@ -69,7 +72,7 @@ def load_tokens(cfg: DaemonConfig) -> TokenStore:
             f.write(f"{name} {token}\n")
     _log(f"no [api] tokens_file: generated demo tokens (operator, observer) in "
          f"{secrets_file}")
-    return TokenStore.from_file(path)
+    return TokenStore.from_file(path), clear
 
 
 def build_control(cfg: DaemonConfig, home: np.ndarray | None = None) -> ControlProcess:
@@ -89,25 +92,42 @@ def build_control(cfg: DaemonConfig, home: np.ndarray | None = None) -> ControlP
 
 
 async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
-                      on_ready: Callable[[DaemonCore, int], Any] | None = None) -> int:
-    """Run the daemon until SIGTERM / SIGINT (or until ``on_ready``'s coroutine, if it
-    returns one, finishes). Returns the exit status."""
+                      on_ready: Callable[..., Any] | None = None) -> int:
+    """Run the daemon until SIGTERM / SIGINT (or until the coroutine that
+    ``on_ready(core, port, tokens, nav)`` returns, if any, finishes). Returns the exit
+    status."""
+    from .navigation_task import ArmProbe, NavigationTask
     from .systemd import Notifier, watchdog_task
 
     s = cfg.settings
-    tokens = load_tokens(cfg)
+    tokens, clear = load_tokens(cfg)
     audit = AuditLog(resolve_audit_path(s.api.audit_log)).open()
-    control = build_control(cfg)
+    control = build_control(cfg, cfg.cell.home_T_B_tcp if cfg.cell is not None else None)
     inputs = open_inputs("sim")
     notifier = Notifier()
-    await control.start()
-    await inputs.start()
     core = DaemonCore(control, WatchdogSet.from_settings(s.safety, 1.0 / s.control.rate_hz),
                       inputs=inputs)
     app = build_app(core, tokens, audit, telemetry_hz=s.api.telemetry_hz)
+    nav = None
+    if cfg.cell is not None:
+        from oralnav.drivers.camera.sim import SimCameraSet
+        from oralnav.sim.cell import SimCell
+
+        probe = ArmProbe(core, cfg.cell.home_T_B_tcp)
+        cell = SimCell(cfg.cell, probe, probe.wrist, core.clock)
+        # before the control loop starts: preparing is seconds of work on every core
+        _log("preparing the simulated cell (camera ray maps, textures)...")
+        await anyio.to_thread.run_sync(cell.prepare)
+        nav = NavigationTask(core, cell, SimCameraSet(cell.camera_names, cell), probe,
+                             progress=lambda msg: _log(msg))
+    keep_off_control_cpu(s.control.cpu)
+    await control.start()
+    await inputs.start()
     try:
         async with anyio.create_task_group() as tg:
             await tg.start(core.supervise)
+            if nav is not None:
+                await tg.start(nav.run)
             port = await tg.start(partial(serve, allow_remote=s.api.allow_remote), app,
                                   s.api.host, api_port or s.api.port)
             _log(f"serving the operator API on http://{s.api.host}:{port} "
@@ -126,7 +146,7 @@ async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
 
             tg.start_soon(on_signal)
             if on_ready is not None:
-                job = on_ready(core, port)
+                job = on_ready(core, port, clear, nav)
                 if job is not None:
                     await job
                     await stop_robot(core, "job finished")
@@ -139,6 +159,17 @@ async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
         audit.close()
     _log("stopped")
     return 0
+
+
+def keep_off_control_cpu(cpu: int | None) -> None:
+    """With ``[control] cpu`` set, run the daemon (tracking, rendering, API) on the other
+    CPUs, so the control process has its core to itself (it pins itself to ``cpu``)."""
+    if cpu is None or not hasattr(os, "sched_setaffinity"):
+        return
+    others = os.sched_getaffinity(0) - {cpu}
+    if others:
+        os.sched_setaffinity(0, others)
+        _log(f"daemon on CPU(s) {sorted(others)}, control loop on CPU {cpu}")
 
 
 async def stop_robot(core: DaemonCore, reason: str) -> bool:

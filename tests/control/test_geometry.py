@@ -339,3 +339,21 @@ def test_make_transform_validates_rotation():
     T = g.make_transform(R, [1.0, 2.0, 3.0])
     np.testing.assert_allclose(T[:3, :3], R.as_matrix(), atol=0)
     np.testing.assert_array_equal(T[:3, 3], [1.0, 2.0, 3.0])
+
+
+def test_nearest_rigid_repairs_drift_and_keeps_rigid_poses() -> None:
+    """Issue 4 navigation: a measured pose whose rotation drifted 1e-6 from orthonormal is
+    projected onto the nearest rotation (then passes the strict chain checks); an exact
+    pose comes back unchanged."""
+    from oralnav.control.geometry import as_transform, nearest_rigid, transform_from_euler
+
+    T = transform_from_euler([0.1, -0.2, 0.3], [10.0, 20.0, 30.0])
+    np.testing.assert_allclose(nearest_rigid(T), T, atol=1e-15)
+    bad = T.copy()
+    bad[:3, :3] *= 1 + 3e-6
+    bad[0, 1] += 2e-6
+    with pytest.raises(ValueError):
+        as_transform(bad)
+    fixed = as_transform(nearest_rigid(bad))
+    np.testing.assert_allclose(fixed[:3, :3].T @ fixed[:3, :3], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(fixed, T, atol=1e-5)

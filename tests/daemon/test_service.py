@@ -61,3 +61,22 @@ def test_sigterm_stops_the_robot_then_exits_cleanly(tmp_path: Path) -> None:
     assert "stopped" in err
     audit = (tmp_path / "oralnav-audit.jsonl").read_text().splitlines()
     assert any('"/estop"' in line for line in audit)
+
+
+def test_main_job_visits_every_target(tmp_path: Path) -> None:
+    """The main job (`oralnavd --demo`): the daemon runs the two-stage navigation on the
+    simulated cell while the demo plays the operator over REST; every suture target is
+    reached with a TRE under 0.2 mm against ground truth, and it exits 0."""
+    import json as _json
+
+    env = dict(os.environ, STATE_DIRECTORY=str(tmp_path), RUNTIME_DIRECTORY=str(tmp_path))
+    proc = subprocess.run([sys.executable, "-m", "oralnav.daemon.main", "--demo", "--json",
+                           "--api-port", str(_free_port())], env=env, cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    doc = _json.loads(proc.stdout)
+    demo = doc["demo"]
+    assert demo["done"] is True
+    assert set(demo["tre_mm"]) == {"stitch_1", "stitch_2", "stitch_3", "stitch_4"}
+    assert max(demo["tre_mm"].values()) < 0.2
+    assert demo["rates_hz"]["tracking"] > 1.0
