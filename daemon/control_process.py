@@ -122,41 +122,33 @@ def _child(spec: ProcessSpec, names: dict[str, str], ready: Any) -> None:
             r.close()
 
 
-class ControlProcess:
-    """Owns the shared records and the child process; see the module docstring."""
+class ControlPort:
+    """The daemon's side of the control loop: the three shared records and what the core
+    does with them (stop, clear, goal, status). :class:`ControlProcess` runs the loop in a
+    child process; :class:`InProcessControl` steps it here, on a virtual clock."""
 
-    def __init__(self, spec: ProcessSpec) -> None:
-        self.spec = spec
+    def __init__(self) -> None:
         self.nav: SharedRecord | None = None
         self.cmd: SharedRecord | None = None
         self.status: SharedRecord | None = None
-        self._proc: mp.process.BaseProcess | None = None
         self._stops = 0
         self._clears = 0
 
-    async def start(self, timeout: float = 20.0) -> None:
-        """Create the records, spawn the child, and wait until its loop runs."""
+    def _open_records(self) -> None:
         self.nav = SharedRecord(NAV_DTYPE)
         self.cmd = SharedRecord(CMD_DTYPE)
         self.status = SharedRecord(STATUS_DTYPE)
-        ctx = mp.get_context("spawn")  # no inherited threads or locks from the daemon
-        ready = ctx.Event()
-        names = {"nav": self.nav.name, "cmd": self.cmd.name, "status": self.status.name}
-        self._proc = ctx.Process(target=_child, args=(self.spec, names, ready),
-                                 name="oralnavd-control", daemon=True)
-        self._proc.start()
-        deadline = time.monotonic() + timeout
-        while not ready.is_set():
-            if not self._proc.is_alive():
-                raise RuntimeError(f"control process exited during start "
-                                   f"(exit code {self._proc.exitcode})")
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"control process not running after {timeout:g} s")
-            await anyio.sleep(0.01)
+
+    def _close_records(self) -> None:
+        for name in ("nav", "cmd", "status"):
+            rec = getattr(self, name)
+            if rec is not None:
+                rec.close()
+                setattr(self, name, None)
 
     @property
     def alive(self) -> bool:
-        return self._proc is not None and self._proc.is_alive()
+        raise NotImplementedError
 
     def request_stop(self, reason: str) -> None:
         """Latched-stop handler: the loop stops the arm at its next period. Never blocks."""
@@ -193,6 +185,37 @@ class ControlProcess:
     def read_status(self) -> np.void | None:
         return None if self.status is None else self.status.read()
 
+
+class ControlProcess(ControlPort):
+    """Owns the shared records and the child process; see the module docstring."""
+
+    def __init__(self, spec: ProcessSpec) -> None:
+        super().__init__()
+        self.spec = spec
+        self._proc: mp.process.BaseProcess | None = None
+
+    async def start(self, timeout: float = 20.0) -> None:
+        """Create the records, spawn the child, and wait until its loop runs."""
+        self._open_records()
+        ctx = mp.get_context("spawn")  # no inherited threads or locks from the daemon
+        ready = ctx.Event()
+        names = {"nav": self.nav.name, "cmd": self.cmd.name, "status": self.status.name}
+        self._proc = ctx.Process(target=_child, args=(self.spec, names, ready),
+                                 name="oralnavd-control", daemon=True)
+        self._proc.start()
+        deadline = time.monotonic() + timeout
+        while not ready.is_set():
+            if not self._proc.is_alive():
+                raise RuntimeError(f"control process exited during start "
+                                   f"(exit code {self._proc.exitcode})")
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"control process not running after {timeout:g} s")
+            await anyio.sleep(0.01)
+
+    @property
+    def alive(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
     async def close(self, timeout: float = 5.0) -> None:
         """Shut the child down (it stops the arm first); idempotent."""
         proc, self._proc = self._proc, None
@@ -206,8 +229,36 @@ class ControlProcess:
                 log.error("control process did not exit in %g s; terminating it", timeout)
                 proc.terminate()
                 proc.join(1.0)
-        for name in ("nav", "cmd", "status"):
-            rec = getattr(self, name)
-            if rec is not None:
-                rec.close()
-                setattr(self, name, None)
+        self._close_records()
+
+
+class InProcessControl(ControlPort):
+    """The control loop stepped in this process by its caller, on a virtual clock: the
+    deterministic simulation and the tests. ``step(now)`` advances the simulated devices
+    by the time since the last step, then runs one loop period."""
+
+    def __init__(self, arm: Any, effector: Any, settings: LoopSettings,
+                 limiter: SpeedLimiter) -> None:
+        super().__init__()
+        self._open_records()
+        self.arm, self.effector = arm, effector
+        self.loop = ControlLoop(arm, effector, settings, self.nav, self.cmd, self.status,
+                                limiter)
+        self._last: float | None = None
+        self._closed = False
+
+    @property
+    def alive(self) -> bool:
+        return not self._closed
+
+    def step(self, now: float) -> None:
+        if self._last is not None:
+            for d in (self.arm, self.effector):
+                if d is not None and hasattr(d, "advance"):
+                    d.advance(now - self._last)
+        self._last = now
+        self.loop.step(now)
+
+    async def close(self) -> None:
+        self._closed = True
+        self._close_records()
