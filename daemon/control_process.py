@@ -251,13 +251,14 @@ class InProcessControl(ControlPort):
     def alive(self) -> bool:
         return not self._closed
 
-    def step(self, now: float) -> None:
+    def step(self, now: float, lateness: float = 0.0) -> None:
+        """One period at ``now``; ``lateness`` simulates a period that started late."""
         if self._last is not None:
             for d in (self.arm, self.effector):
                 if d is not None and hasattr(d, "advance"):
                     d.advance(now - self._last)
         self._last = now
-        self.loop.step(now)
+        self.loop.step(now, lateness)
 
     async def close(self) -> None:
         self._closed = True

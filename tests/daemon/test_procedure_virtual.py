@@ -61,10 +61,11 @@ class Lockstep:
             await dev.close()
         await self.control.close()
 
-    async def run(self, periods: int, until=lambda: False, frozen=lambda: False) -> None:
+    async def run(self, periods: int, until=lambda: False, frozen=lambda: False,
+                  lateness: float = 0.0) -> None:
         for _ in range(periods):
             self.clock.advance(self.period)
-            self.control.step(self.clock.now())
+            self.control.step(self.clock.now(), lateness)
             self.k += 1
             if self.k % CAMERA_EVERY == 0 and not frozen():
                 await self.nav._round(await self.cameras.read())
@@ -136,3 +137,47 @@ async def test_frozen_camera_stops_the_robot(cell: Lockstep) -> None:
     stop_t = [r.time for r in cell.arm.command_log if r.kind == "stop"][0]
     assert not [r for r in cell.arm.command_log
                 if r.time > stop_t and r.kind in ("servo", "speed")]
+
+
+def _lose_opener(c: Lockstep) -> None:
+    track = c.nav.stereo.track
+
+    def without_opener(images):
+        out = track(images)
+        out.pop(c.cfg.cell.opener, None)
+        return out
+
+    c.nav.stereo.track = without_opener
+
+
+@pytest.mark.parametrize("fault, expect", [
+    (lambda c: c.arm.inject_disconnect(), "arm disconnected"),
+    (lambda c: c.arm.inject_protective_stop(), "arm protective stop"),
+    (lambda c: c.wrist.inject_silence(), "end-effector"),
+    (_lose_opener, "T_C_OM"),
+    ("late", "deadline"),
+])
+async def test_injected_faults_stop_the_robot(cell: Lockstep, fault, expect: str) -> None:
+    """Each injected fault during the move (arm link lost, protective stop, silent wrist,
+    lost opener field, late control loop) ends in FAULT with its reason; the loop has
+    stopped the arm and sends no motion command after the stop."""
+    await _start(cell)
+    await cell.run(300)
+    assert cell.core.supervisor.state.value == "RUNNING"
+    moves_before = len([r for r in cell.arm.command_log if r.kind == "servo"])
+    if fault == "late":
+        await cell.run(200, until=lambda: cell.core.supervisor.state.value == "FAULT",
+                       lateness=0.06)
+    else:
+        fault(cell)
+        await cell.run(3000, until=lambda: cell.core.supervisor.state.value == "FAULT")
+    assert cell.core.supervisor.state.value == "FAULT"
+    assert expect in str(cell.core.supervisor.snapshot())
+    await cell.run(2)
+    st = cell.control.read_status()
+    assert st["latched"]
+    stops = [r.time for r in cell.arm.command_log if r.kind == "stop"]
+    assert stops, "the arm was never told to stop"
+    assert not [r for r in cell.arm.command_log
+                if r.time > stops[0] and r.kind in ("servo", "speed")]
+    assert moves_before > 0
