@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from oralnav.safety.limits import SpeedLimiter
+from oralnav.safety.limits import SpeedLimiter, WorkspaceBox
 from oralnav.safety.watchdogs import DeadlineWatchdog, DriverSilenceWatchdog, StalePoseWatchdog
 
 from .shm import SharedRecord, decode_reason, encode_reason
@@ -101,6 +101,9 @@ class LoopSettings:
     deadline_misses: int = 5             # consecutive late periods that stop the arm
     max_period_lateness: float = 0.01    # s: one period this late stops the arm
     max_wrist_speed: float = 1.0         # rad/s per joint
+    # m, base frame: a goal or a measured TCP outside stops the arm
+    workspace_min: tuple[float, float, float] = (-0.85, -0.85, 0.0)
+    workspace_max: tuple[float, float, float] = (0.85, 0.85, 1.0)
 
     @property
     def period(self) -> float:
@@ -112,7 +115,9 @@ class LoopSettings:
         return cls(rate_hz=control.rate_hz, stale_pose=safety.stale_pose,
                    driver_silence=safety.driver_silence,
                    deadline_misses=safety.deadline_misses,
-                   max_period_lateness=safety.max_period_lateness)
+                   max_period_lateness=safety.max_period_lateness,
+                   workspace_min=tuple(safety.workspace_min),
+                   workspace_max=tuple(safety.workspace_max))
 
 
 class ControlLoop:
@@ -139,6 +144,7 @@ class ControlLoop:
                                           settings.max_period_lateness)
         self._silence = DriverSilenceWatchdog(settings.driver_silence)
         self._stale = StalePoseWatchdog(settings.stale_pose)
+        self._workspace = WorkspaceBox(settings.workspace_min, settings.workspace_max)
         self._last_now: float | None = None
         self._hist = np.zeros(HIST_BINS + 1, dtype=np.int64)
         self._periods = self._misses = self._motion = 0
@@ -197,12 +203,24 @@ class ControlLoop:
                 return f"end-effector fault: {wrist.fault}"
             self._silence.heartbeat("end-effector", wrist.timestamp)
         trips = self._silence.check(now) + self._deadline.check(now)
+        outside = self._workspace_reason("TCP", arm.T_B_tcp)
+        if outside is None and int(nav["mode"]) == MOVE:
+            outside = self._workspace_reason("goal", np.array(nav["goal"]))
+        if outside is not None:  # never steer toward, or stay moving, outside the box
+            return outside
         if int(nav["mode"]) == MOVE:  # a stale pose matters only while it steers a move
             self._stale.fresh("goal", float(nav["t_pose"]))
             trips += self._stale.check(now)
         else:
             self._stale.disarm("goal")
         return "; ".join(f"{t.name}: {t.reason}" for t in trips) if trips else None
+
+    def _workspace_reason(self, what: str, T: np.ndarray) -> str | None:
+        bad = self._workspace.violations(T[:3, 3])
+        if not bad:
+            return None
+        return f"workspace: {what} outside the box (" + ", ".join(
+            f"{axis} {d * 1e3:+.1f} mm" for axis, d in bad) + ")"
 
     def _clock_after(self, now: float) -> float:
         return self._clock() if self._clock is not None else now

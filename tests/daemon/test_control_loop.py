@@ -228,3 +228,14 @@ async def test_control_process_runs_and_stops_on_request() -> None:
     finally:
         await proc.close()
     assert not proc.alive
+
+
+def test_goal_outside_the_workspace_stops_at_once(cell: Cell) -> None:
+    """A goal outside the workspace box stops the arm in the period it arrives, before any
+    motion toward it; the reason names the axis and the excess."""
+    cell.goal(0.01)
+    cell.run(20)
+    t = cell.clock.now()
+    cell.goal(2.0)  # 2 m along x: far outside the default box (x <= 0.85 m)
+    cell.run(5)
+    _assert_stopped(cell, t, "workspace: goal outside the box (x +")
