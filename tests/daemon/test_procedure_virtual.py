@@ -173,9 +173,10 @@ async def test_injected_faults_stop_the_robot(cell: Lockstep, fault, expect: str
         await cell.run(3000, until=lambda: cell.core.supervisor.state.value == "FAULT")
     assert cell.core.supervisor.state.value == "FAULT"
     assert expect in str(cell.core.supervisor.snapshot())
+    t_fault = cell.clock.now()  # the supervisor saw it at the latest here
     await cell.run(2)
     st = cell.control.read_status()
-    assert st["latched"]
+    assert st["latched"] and st["stop_time"] <= t_fault + 2 * cell.period + 1e-9
     stops = [r.time for r in cell.arm.command_log if r.kind == "stop"]
     assert stops, "the arm was never told to stop"
     assert not [r for r in cell.arm.command_log
