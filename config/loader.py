@@ -125,16 +125,19 @@ def resolve_file(base_file: str | Path, key: str, ref: str | Path) -> Path:
     return target
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+def atomic_write_bytes(path: str | Path, data: bytes, mode: int | None = None) -> None:
     """Write ``data`` to ``path`` atomically: a temporary file in the same folder, fsync,
     rename, fsync of the folder. On any failure the temporary file is removed and an
-    existing ``path`` is unchanged; an existing file's permissions are kept."""
+    existing ``path`` is unchanged. The file gets ``mode``, or by default an existing
+    file's permissions (0644 for a new one); the temporary file is 0600 until then, so a
+    private ``mode`` (0600) is never readable by others, not even for an instant."""
     path = Path(path)
     if not path.parent.is_dir():
         raise FileNotFoundError(
             errno.ENOENT, f"cannot write {str(path)!r}: folder {str(path.parent)!r} does not "
             "exist", str(path.parent))
-    mode = (path.stat().st_mode & 0o777) if path.is_file() else 0o644
+    if mode is None:
+        mode = (path.stat().st_mode & 0o777) if path.is_file() else 0o644
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:

@@ -21,9 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-import os
 import secrets
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -31,7 +29,7 @@ from typing import Annotated, Literal
 from pydantic import Field, StringConstraints, field_validator
 
 from oralnav.config.errors import ConfigError
-from oralnav.config.loader import Strict, read_toml, toml_key, validate
+from oralnav.config.loader import Strict, atomic_write_bytes, read_toml, toml_key, validate
 
 Role = Literal["observer", "operator"]
 
@@ -125,7 +123,8 @@ class TokenStore:
         for name, token in tokens.items():
             text += (f"\n[tokens.{toml_key(name)}]\nrole = \"{name}\"\n"
                      f"sha256 = \"{hash_token(token)}\"\n")
-        _write_private(Path(path), text.encode("utf-8"))
+        # mode 0600: only the daemon's user may read even the digests
+        atomic_write_bytes(path, text.encode("utf-8"), mode=0o600)
         return tokens
 
     def authenticate(self, token: str | None) -> Principal | None:
@@ -139,35 +138,3 @@ class TokenStore:
             if hmac.compare_digest(digest, stored):
                 found = principal
         return found
-
-
-def _write_private(path: Path, data: bytes) -> None:
-    """Atomic write with mode 0600 from the start (``mkstemp`` creates files 0600), so the
-    digests are never readable by others, not even for an instant."""
-    if not path.parent.is_dir():
-        raise FileNotFoundError(f"cannot write {str(path)!r}: folder {str(path.parent)!r} "
-                                "does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o600)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    try:  # make the rename durable
-        dfd = os.open(path.parent, os.O_RDONLY)
-    except OSError:  # pragma: no cover - not every platform opens folders
-        return
-    try:
-        os.fsync(dfd)
-    except OSError:  # pragma: no cover
-        pass
-    finally:
-        os.close(dfd)
