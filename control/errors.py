@@ -19,3 +19,8 @@ class CameraModelError(ControlError, ValueError):
 
 class MarkerFieldError(ControlError, ValueError):
     """A marker field is malformed (unknown dictionary, id overflow, impossible surface)."""
+
+
+class CalibrationError(ControlError, ValueError):
+    """A calibration was refused: too few or degenerate samples, or samples that disagree
+    beyond what the measurement noise explains. The message says what to capture instead."""

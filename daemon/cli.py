@@ -7,6 +7,7 @@
     oralnav track --rig RIG --fields FIELDS --replay NAME=SOURCE [...] [--mode M] [--json]
     oralnav track --calibration NAME=calibration.txt [--fields FIELDS] [--body NAME=PATH ...]
                   [--tag NAME=DICT:ID:SIDE_MM ...] --replay NAME=VIDEO [--frames N] [--json]
+    oralnav calibrate pivot --matrices FILE [--method M] [--json] [--out F --cell ID]
     oralnav bench navigation [--quick] --out DIR
 
 Every ``--json`` prints exactly one JSON object on stdout; progress and logs go to stderr.
@@ -36,6 +37,7 @@ from oralnav.config.scene import load_scene
 from oralnav.control.errors import ControlError
 from oralnav.sim.render import RenderError, SceneRenderer
 
+from . import calibrate
 from .sheets import SheetError, render_sheet, write_png
 
 
@@ -373,6 +375,8 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("--json", action="store_true", help="print one JSON object")
     tk.set_defaults(func=cmd_track)
 
+    calibrate.add_parser(sub)
+
     bn = sub.add_parser("bench", help="benchmarks").add_subparsers(dest="cmd", required=True)
     nv = bn.add_parser("navigation", help="speed/accuracy charts of the tracker (minutes)")
     nv.add_argument("--quick", action="store_true", help="fewer frames (about 2-3 minutes)")
@@ -392,7 +396,7 @@ def run(argv: Sequence[str] | None = None) -> int:
     try:
         return args.func(args)
     except (ConfigError, ControlError, RenderError, SheetError, UsageError,
-            FileNotFoundError) as exc:
+            calibrate.SampleFileError, FileNotFoundError) as exc:
         _fail(args, str(exc), 2)
         return 2
     except (OSError, RuntimeError, ValueError) as exc:

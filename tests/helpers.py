@@ -27,6 +27,14 @@ needs_aruco_data = pytest.mark.skipif(
     reason=f"peer data folder {ARUCO_DATA} is absent (CI has it at ../shared/peer-data)",
 )
 
+#: scikit-surgerycore's pivot-calibration matrices: all_matrices.txt (1151 poses, mm) and
+#: single_rank_deficient.txt (one pose).
+PIVOT_DATA = PEER_DATA / "sksurgery-pivot"
+needs_pivot_data = pytest.mark.skipif(
+    not PIVOT_DATA.is_dir(),
+    reason=f"peer data folder {PIVOT_DATA} is absent (CI has it at ../shared/peer-data)",
+)
+
 #: The peer's regression pose of tag DICT_4X4_50:0 (50 mm) in output.avi frame index 1
 #: (camera frame, OpenCV single-marker convention: z toward the camera), millimetres.
 PEER_TAG0_MM = np.array([
