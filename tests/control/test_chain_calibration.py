@@ -29,6 +29,12 @@ SIGMA_T = np.array([0.05e-3, 0.05e-3, 0.15e-3])
 SIGMA_R = np.radians(0.03)
 
 
+def _err(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """Translation (mm) and rotation (deg) error."""
+    dt, dr = pose_error(T, T_true)
+    return dt * 1e3, float(np.degrees(dr))
+
+
 def _noisy(T_cam_x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """``T_cam_x`` as a tracker reports it: perturbed in the camera frame."""
     xi = np.r_[rng.normal(0, SIGMA_T), rng.normal(0, SIGMA_R, 3)]
@@ -57,7 +63,7 @@ def test_endoscope_to_opener_recovers_the_truth_with_its_spread():
     T_C_CB = np.stack([_noisy(T_C_OM_true @ b, rng) for b in T_OM_CB])
     T_En_CB = np.stack([_noisy(invert(G.T_OM_En) @ b, rng) for b in T_OM_CB])
     res = calibrate_endoscope_opener(T_C_OM, T_C_CB, T_En_CB)
-    dt_mm, dr_deg = pose_error(res.T, G.T_OM_En)
+    dt_mm, dr_deg = _err(res.T, G.T_OM_En)
     assert res.n_used == 20
     assert dt_mm < 0.1 and dr_deg < 0.05, (dt_mm, dr_deg)
     assert 0.0 < res.translation_sem_mm < res.translation_spread_mm < 2.0
@@ -78,7 +84,7 @@ def test_a_moved_sample_is_rejected_and_reported():
     T_C_CB[5][:3, 3] += [0.002, 0.0, 0.0]
     res = calibrate_endoscope_opener(T_C_OM, T_C_CB, T_En_CB)
     assert not res.used[5] and res.used.sum() == 11
-    assert pose_error(res.T, G.T_OM_En)[0] < 0.15
+    assert _err(res.T, G.T_OM_En)[0] < 0.15
 
 
 def test_effector_zero_recovers_T_RM_E0():
@@ -98,7 +104,7 @@ def test_effector_zero_recovers_T_RM_E0():
         T_B_J6.append(T_B_tcp)
     res = calibrate_effector_zero(np.stack(T_C_RM), np.stack(p_C_SI), G.T_B_C,
                                   np.stack(T_B_J6))
-    dt_mm, dr_deg = pose_error(res.T, T_RM_E0)
+    dt_mm, dr_deg = _err(res.T, T_RM_E0)
     assert dt_mm < 0.1 and dr_deg < 0.05, (dt_mm, dr_deg)
 
 
@@ -118,7 +124,7 @@ def test_effector_marker_recovers_T_EM_E():
         T_B_E0.append(exp(np.r_[rng.normal(0, 0.05e-3, 3), rng.normal(0, SIGMA_R, 3)]) @ E0)
     res = calibrate_effector_marker(G.T_B_C, np.stack(T_C_OM), G.T_OM_En, np.stack(T_En_EM),
                                     np.stack(T_B_E0))
-    dt_mm, dr_deg = pose_error(res.T, invert(G.T_E_EM))
+    dt_mm, dr_deg = _err(res.T, invert(G.T_E_EM))
     assert dt_mm < 0.1 and dr_deg < 0.1, (dt_mm, dr_deg)
 
 
