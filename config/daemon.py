@@ -7,7 +7,7 @@ real robot PC.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Literal
@@ -19,6 +19,7 @@ from oralnav.control.markers import MarkerField
 from oralnav.sim.cell import CellConfig
 from oralnav.sim.scene import Scene
 
+from .calibration import Calibration, load_calibration
 from .cell import load_cell_config
 from .fields import load_fields
 from .loader import Float, Int, Strict, read_toml, resolve_file, validate
@@ -182,9 +183,27 @@ class ApiSection(Strict):
         return v
 
 
+class CalibrationSection(Strict):
+    """The cell's calibration files (docs/calibration.md), relative to this file. Each is
+    checked on load: its kind, its cell (must be ``cell``), rigid transforms, units."""
+
+    # the cell these calibrations belong to; a file of another cell is refused
+    cell: str = Field(min_length=1)
+    hand_eye: str | None = None            # T_B_C, T_tcp_RM
+    endoscope_opener: str | None = None    # T_OM_En (eqs. 1-2)
+    effector_zero: str | None = None       # T_RM_E0 (eqs. 3-4)
+    effector_marker: str | None = None     # T_EM_E (eq. 7)
+    pivot: str | None = None               # the registration pointer's tip ([28])
+
+
+#: The calibration kinds the navigation chain needs (eqs. 5-8).
+NAVIGATION_CALIBRATIONS = ("hand_eye", "endoscope_opener", "effector_zero", "effector_marker")
+
+
 class DaemonFile(Strict):
     name: str = "oralnav"
     cell: CellSection
+    calibration: CalibrationSection | None = None
     control: ControlSection = ControlSection()
     safety: SafetySection = SafetySection()
     api: ApiSection = ApiSection()
@@ -204,6 +223,12 @@ class DaemonConfig:
     scene: Scene | None = None
     #: the loaded cell file ([cell] sim_cell), when the configuration names one
     cell: CellConfig | None = None
+    #: the loaded calibration files ([calibration]), kind -> Calibration
+    calibrations: dict[str, Calibration] = field(default_factory=dict)
+
+    def missing_calibrations(self) -> list[str]:
+        """The navigation chain's calibration kinds the configuration does not name."""
+        return [k for k in NAVIGATION_CALIBRATIONS if k not in self.calibrations]
 
 
 def default_config_path() -> Path:
@@ -228,5 +253,13 @@ def load_config(path: str | Path | None = None) -> DaemonConfig:
     scene = load_scene(scene_path) if scene_path is not None else None
     cell_cfg = (load_cell_config(resolve_file(path, "cell.sim_cell", cell.sim_cell))
                 if cell.sim_cell else None)
+    cals: dict[str, Calibration] = {}
+    if doc.calibration is not None:
+        c = doc.calibration
+        for kind in (*NAVIGATION_CALIBRATIONS, "pivot"):
+            ref = getattr(c, kind)
+            if ref:
+                cals[kind] = load_calibration(resolve_file(path, f"calibration.{kind}", ref),
+                                              kind=kind, cell=c.cell)
     return DaemonConfig(path=path, settings=doc, rig=rig, endoscope_rig=endo, fields=fields,
-                        scene_path=scene_path, scene=scene, cell=cell_cfg)
+                        scene_path=scene_path, scene=scene, cell=cell_cfg, calibrations=cals)

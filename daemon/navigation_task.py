@@ -15,13 +15,15 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import anyio
 import anyio.to_thread
 import numpy as np
 
+from oralnav.config.calibration import Calibration
+from oralnav.config.daemon import NAVIGATION_CALIBRATIONS
 from oralnav.control.geometry import invert, nearest_rigid
 from oralnav.control.navigation import NavCalibration, TwoStageNavigator
 from oralnav.control.tracker import Tracker
@@ -60,19 +62,46 @@ class ArmProbe:
 
 
 def sim_calibration(cell: SimCell) -> NavCalibration:
-    """The simulated cell's calibration, exact: the calibration issue measures these on a
-    real cell (hand-eye, eqs. 2-4, 7)."""
+    """The simulated cell's true geometry as a calibration: what a perfect calibration
+    would measure. Used only for kinds the configuration names no file for."""
     g = cell.config.geometry
     return NavCalibration(T_B_C=g.T_B_C, T_RM_E0=invert(g.T_tcp_RM) @ g.T_tcp_E0,
                           T_OM_En=g.T_OM_En, T_EM_E=invert(g.T_E_EM))
+
+
+def nav_calibration(calibrations: Mapping[str, Calibration], cell: SimCell | None = None
+                    ) -> NavCalibration:
+    """The navigation chain's calibration from the configuration's files (kind ->
+    :class:`Calibration`); on the simulated cell, a kind without a file falls back to the
+    cell's truth, with a warning. Raises ``KeyError`` naming the missing kinds otherwise."""
+    missing = [k for k in NAVIGATION_CALIBRATIONS if k not in calibrations]
+    if missing and cell is None:
+        raise KeyError(f"no calibration file for {', '.join(missing)} ([calibration] in the "
+                       "configuration; docs/calibration.md)")
+    truth = sim_calibration(cell) if cell is not None else None
+    if missing:
+        log.warning("no calibration file for %s: using the simulated cell's true geometry "
+                    "there", ", ".join(missing))
+
+    def pick(kind: str, key: str, attr: str) -> np.ndarray:
+        cal = calibrations.get(kind)
+        return np.array(cal[key]) if cal is not None else getattr(truth, attr)
+
+    return NavCalibration(T_B_C=pick("hand_eye", "T_B_C", "T_B_C"),
+                          T_RM_E0=pick("effector_zero", "T_RM_E0", "T_RM_E0"),
+                          T_OM_En=pick("endoscope_opener", "T_OM_En", "T_OM_En"),
+                          T_EM_E=pick("effector_marker", "T_EM_E", "T_EM_E"))
 
 
 class NavigationTask:
     """See the module docstring."""
 
     def __init__(self, core: DaemonCore, cell: SimCell, cameras: Any, probe: ArmProbe,
-                 *, progress: Callable[[str], None] | None = None) -> None:
+                 *, calibration: NavCalibration | None = None,
+                 progress: Callable[[str], None] | None = None) -> None:
         self.core, self.cell, self.cameras, self.probe = core, cell, cameras, probe
+        # the configuration's calibration files, else the cell's truth
+        self.calibration = calibration or sim_calibration(cell)
         self.progress = progress or (lambda msg: log.info("%s", msg))
         self.stereo = Tracker(cell.stereo_rig, list(cell.fields), method="nvgba",
                               mode="predict")
@@ -88,7 +117,7 @@ class NavigationTask:
         g = cfg.geometry
         T_OM_E0_entry = invert(g.T_B_OM) @ cfg.intraoral_T_B_tcp @ g.T_tcp_E0
         targets = {t.name: np.array(t.p_OM) for t in self.core.targets()}
-        return TwoStageNavigator(sim_calibration(self.cell), T_OM_E0_entry, targets)
+        return TwoStageNavigator(self.calibration, T_OM_E0_entry, targets)
 
     def _track(self, frames: dict[str, Any]) -> tuple[dict, dict]:
         stereo = {n: f.image for n, f in frames.items() if n in self.cell.stereo_rig.names}

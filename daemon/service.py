@@ -96,7 +96,7 @@ async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
     """Run the daemon until SIGTERM / SIGINT (or until the coroutine that
     ``on_ready(core, port, tokens, nav)`` returns, if any, finishes). Returns the exit
     status."""
-    from .navigation_task import ArmProbe, NavigationTask
+    from .navigation_task import ArmProbe, NavigationTask, nav_calibration
     from .systemd import Notifier, watchdog_task
 
     s = cfg.settings
@@ -119,6 +119,7 @@ async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
         _log("preparing the simulated cell (camera ray maps, textures)...")
         await anyio.to_thread.run_sync(cell.prepare)
         nav = NavigationTask(core, cell, SimCameraSet(cell.camera_names, cell), probe,
+                             calibration=nav_calibration(cfg.calibrations, cell),
                              progress=lambda msg: _log(msg))
     keep_off_control_cpu(s.control.cpu)
     await control.start()

@@ -219,3 +219,50 @@ def test_missing_config_file(tmp_path):
     with pytest.raises(ConfigError) as ei:
         load_config(tmp_path / "oralnav.toml")
     assert str(ei.value) == f"{tmp_path / 'oralnav.toml'}: file not found"
+
+
+# -- [calibration] (issue 5 item 6) ---------------------------------------------------------
+def _calibration_files(folder: Path, cell: str = "test-cell") -> dict[str, Path]:
+    import numpy as np
+
+    from oralnav.config.calibration import Calibration, SampleInfo, save_calibration
+
+    out = {}
+    for kind, key in (("hand_eye", None), ("endoscope_opener", "T_OM_En"),
+                      ("effector_zero", "T_RM_E0"), ("effector_marker", "T_EM_E")):
+        values = {"T_B_C": np.eye(4), "T_tcp_RM": np.eye(4)} if key is None \
+            else {key: np.eye(4)}
+        out[kind] = save_calibration(Calibration(kind, cell, "test", values,
+                                                 SampleInfo(3, "0" * 64)),
+                                     folder / f"{kind}.toml")
+    return out
+
+
+def test_calibration_files_load_by_path_from_the_configuration(tmp_path):
+    """Issue 5 item 6: the daemon loads each calibration file named in [calibration],
+    checked against the section's cell."""
+    files = _calibration_files(tmp_path)
+    text = GOOD + '\n[calibration]\ncell = "test-cell"\n' + "".join(
+        f'{k} = "{p}"\n' for k, p in files.items())
+    cfg = load_config(_write(tmp_path, "oralnav.toml", text))
+    assert sorted(cfg.calibrations) == sorted(files)
+    assert cfg.missing_calibrations() == []
+    assert load_config(_write(tmp_path, "oralnav.toml", GOOD)).missing_calibrations() == [
+        "hand_eye", "endoscope_opener", "effector_zero", "effector_marker"]
+
+
+def test_calibration_of_another_cell_is_refused_at_load(tmp_path):
+    """Issue 5, bad input: a calibration file from another cell stops the daemon at load,
+    naming that file and its cell key."""
+    files = _calibration_files(tmp_path, cell="other-cell")
+    text = GOOD + f'\n[calibration]\ncell = "test-cell"\nhand_eye = "{files["hand_eye"]}"\n'
+    with pytest.raises(ConfigError, match="another cell") as exc:
+        load_config(_write(tmp_path, "oralnav.toml", text))
+    assert exc.value.file == str(files["hand_eye"]) and exc.value.key == "cell"
+
+
+def test_calibration_file_of_the_wrong_kind_is_refused(tmp_path):
+    files = _calibration_files(tmp_path)
+    text = GOOD + f'\n[calibration]\ncell = "test-cell"\nhand_eye = "{files["effector_zero"]}"\n'
+    with pytest.raises(ConfigError, match="'effector_zero' calibration; a 'hand_eye' one"):
+        load_config(_write(tmp_path, "oralnav.toml", text))
