@@ -6,9 +6,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from . import control, navigation, render
+from . import calibration, control, navigation, render
 
-BENCHES = {"render": render.main, "navigation": navigation.main, "control": control.main}
+BENCHES = {"render": render.main, "navigation": navigation.main, "control": control.main,
+           "calibration": calibration.main}
 
 
 def main() -> int:

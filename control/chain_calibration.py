@@ -31,6 +31,9 @@ __all__ = ["AveragedPose", "average_samples", "calibrate_effector_marker",
 #: Fewest samples a chain calibration accepts: one sample has no spread to report, and
 #: with two a bad one cannot be told from a good one.
 MIN_SAMPLES = 3
+#: Rejection needs this many samples: with fewer, the median absolute deviation is set by
+#: one or two samples and would throw out good ones.
+MIN_SAMPLES_TO_REJECT = 5
 #: A sample farther than this many robust sigmas (1.4826 MAD) from the mean is rejected...
 REJECT_SIGMAS = 4.0
 #: ...provided it is also farther than these floors, so a tight cluster of good samples
@@ -105,7 +108,7 @@ def average_samples(Ts: np.ndarray | Sequence[np.ndarray], what: str, *,
         Ts: (N, 4, 4) per-sample estimates (m).
         what: the transform's name, for messages (``"T_OM_En"``).
         reject: drop samples beyond ``REJECT_SIGMAS`` robust sigmas (and the floors) of the
-            rest, once, then re-average.
+            rest, once, then re-average (from ``MIN_SAMPLES_TO_REJECT`` samples on).
         max_spread_m, max_spread_rad: refuse when an accepted sample still lies farther
             than these from the mean.
 
@@ -121,7 +124,7 @@ def average_samples(Ts: np.ndarray | Sequence[np.ndarray], what: str, *,
                                "to average and to report a spread")
     used = np.ones(len(Ts), dtype=bool)
     T = average_poses(Ts)
-    if reject:
+    if reject and len(Ts) >= MIN_SAMPLES_TO_REJECT:
         dt, dr = _deviations(Ts, T)
         used = ~(_outliers(dt, REJECT_FLOOR_M) | _outliers(dr, REJECT_FLOOR_RAD))
         if used.sum() < min_samples:

@@ -2,6 +2,16 @@
 
     oralnav calibrate pivot --matrices FILE [--method algebraic|sphere|ransac] [--json]
                             [--out FILE --cell ID --unit mm|m]
+    oralnav calibrate hand-eye --robot T_B_tcp.txt --marker T_C_RM.txt [--method M]
+    oralnav calibrate endoscope-opener --opener T_C_OM.txt --board-camera T_C_CB.txt
+                                       --board-endoscope T_En_CB.txt
+    oralnav calibrate effector-zero --marker T_C_RM.txt --flange T_B_J6.txt
+                                    --hand-eye FILE (--tip p_C_SI.txt | --pointer T_C_SI.txt
+                                    --pivot FILE)
+    oralnav calibrate effector-marker --opener T_C_OM.txt --effector-marker T_En_EM.txt
+                                      --robot-marker T_C_RM.txt --hand-eye FILE
+                                      --endoscope-opener FILE --effector-zero FILE
+    (each also [--unit m|mm] [--out FILE --cell ID] [--json])
 
 Sample files are plain text, as numpy writes them (``numpy.savetxt``): a stack of 4x4
 matrices is 4N rows of 4 numbers (the scikit-surgery pivot format), a list of points N rows
@@ -24,9 +34,19 @@ from oralnav.config.calibration import (
     LENGTH_UNITS,
     Calibration,
     SampleInfo,
+    load_calibration,
     samples_digest,
     save_calibration,
 )
+from oralnav.config.loader import atomic_write_text
+from oralnav.control.chain_calibration import (
+    AveragedPose,
+    calibrate_effector_marker,
+    calibrate_effector_zero,
+    calibrate_endoscope_opener,
+)
+from oralnav.control.chains import extraoral_T_B_E0
+from oralnav.control.handeye import HAND_EYE_METHODS, calibrate_hand_eye
 from oralnav.control.pivot import METHODS as PIVOT_METHODS
 from oralnav.control.pivot import PivotError, pivot_calibration, validate_tracking_matrices
 
@@ -58,6 +78,81 @@ def read_matrices(path: str | Path, what: str) -> tuple[np.ndarray, bytes]:
         raise SampleFileError(f"{path}: {what}: expected stacked 4x4 matrices (4N rows of 4 "
                               f"numbers), got {a.shape[0]} rows of {a.shape[1]}")
     return a.reshape(-1, 4, 4), raw
+
+
+def read_points(path: str | Path, what: str) -> tuple[np.ndarray, bytes]:
+    """Points from a text file, N rows of 3 numbers: ``((N, 3) array, the file's bytes)``."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+        a = np.loadtxt(path, dtype=float, ndmin=2)
+    except FileNotFoundError:
+        raise SampleFileError(f"{path}: {what}: file not found") from None
+    except ValueError as exc:
+        raise SampleFileError(f"{path}: {what}: not a table of numbers ({exc})") from None
+    if a.size == 0 or a.shape[1] != 3:
+        raise SampleFileError(f"{path}: {what}: expected N rows of 3 numbers (x y z), got "
+                              f"shape {a.shape}")
+    return a, raw
+
+
+def _scaled(T: np.ndarray, unit: str) -> np.ndarray:
+    """Stacked transforms with their translations converted from ``unit`` to metres."""
+    T = T.copy()
+    T[:, :3, 3] *= LENGTH_UNITS[unit]
+    return T
+
+
+def _samples(args: argparse.Namespace, named: dict[str, str], unit: str | None = None
+             ) -> tuple[dict[str, np.ndarray], SampleInfo]:
+    """Read the stacked-matrix files ``named`` (option -> path), all with one count, in
+    metres; returns the arrays and the provenance (count, hash over every file, names)."""
+    unit = unit or args.unit
+    arrays, raws, count = {}, [], None
+    for option, path in named.items():
+        T, raw = read_matrices(path, option)
+        T = validate_tracking_matrices(T, f"{path}: {option}", min_poses=1)
+        if count is not None and len(T) != count:
+            raise SampleFileError(f"{path}: {option}: {len(T)} samples, but "
+                                  f"{next(iter(named.values()))} has {count}: the files must "
+                                  "hold the same instants, row for row")
+        count = len(T)
+        arrays[option] = _scaled(T, unit)
+        raws.append(raw)
+    return arrays, SampleInfo(int(count or 0), samples_digest(raws),
+                              ", ".join(str(p) for p in named.values()))
+
+
+def _emit_result(args: argparse.Namespace, doc: dict[str, Any], text: str) -> None:
+    if args.json:
+        print(json.dumps(doc))
+    else:
+        print(text)
+
+
+def _averaged(args: argparse.Namespace, kind: str, key: str, res: AveragedPose,
+              info: SampleInfo, method: str) -> int:
+    """Write and print a chain calibration averaged over samples."""
+    cal = Calibration(kind=kind, cell=args.cell or "", method=method, values={key: res.T},
+                      samples=info, residuals=res.report())
+    path = _write(args, cal)
+    if res.n_used < res.n_samples:
+        _progress(f"left out {res.n_samples - res.n_used} disagreeing sample(s): "
+                  f"{np.flatnonzero(~res.used).tolist()}")
+    _emit_result(args, {"kind": kind, key: res.T.tolist(), **res.report(), "out": path},
+                 f"{key} from {res.n_used} of {res.n_samples} samples: spread "
+                 f"{res.translation_spread_mm:.3f} mm / {res.rotation_spread_deg:.3f} deg "
+                 f"(standard error {res.translation_sem_mm:.3f} mm / "
+                 f"{res.rotation_sem_deg:.3f} deg)\n{_matrix(res.T)}")
+    return 0
+
+
+def _matrix(T: np.ndarray) -> str:
+    return "\n".join("  [" + ", ".join(f"{v: .6f}" for v in row) + "]" for row in T)
+
+
+def _load(path: str, kind: str, cell: str | None) -> Calibration:
+    return load_calibration(path, kind=kind, cell=cell)
 
 
 def _write(args: argparse.Namespace, cal: Calibration) -> str | None:
@@ -113,10 +208,197 @@ def cmd_pivot(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+# -- hand-eye -------------------------------------------------------------------------
+def cmd_hand_eye(args: argparse.Namespace) -> int:
+    _needs_cell(args)
+    a, info = _samples(args, {"--robot": args.robot, "--marker": args.marker})
+    T_B_tcp, T_C_RM = a["--robot"], a["--marker"]
+    _progress(f"hand-eye calibration from {len(T_B_tcp)} poses (start: {args.method})")
+    res = calibrate_hand_eye(T_B_tcp, T_C_RM, method=args.method)
+    if len(res.downweighted):
+        _progress(f"suspect poses (down-weighted): {list(map(int, res.downweighted))}")
+    cal = Calibration(
+        kind="hand_eye", cell=args.cell or "", method=f"refined from {res.start_method}",
+        values={"T_B_C": res.T_B_C, "T_tcp_RM": res.T_tcp_RM}, samples=info,
+        residuals={"rms_mm": res.rms_mm, "rms_deg": res.rms_deg,
+                   "per_pose_mm": res.residuals_mm.tolist(),
+                   "per_pose_deg": res.residuals_deg.tolist(),
+                   "start_rms_mm": res.start_rms_mm, "start_rms_deg": res.start_rms_deg},
+        quality={"sigma_T_B_C_mm": res.sigma_T_B_C_mm, "sigma_T_B_C_deg": res.sigma_T_B_C_deg,
+                 "downweighted": [float(i) for i in res.downweighted]})
+    path = _write(args, cal)
+    _emit_result(args, {"kind": "hand_eye", "T_B_C": res.T_B_C.tolist(),
+                        "T_tcp_RM": res.T_tcp_RM.tolist(), "rms_mm": res.rms_mm,
+                        "rms_deg": res.rms_deg, "sigma_T_B_C_mm": res.sigma_T_B_C_mm,
+                        "sigma_T_B_C_deg": res.sigma_T_B_C_deg,
+                        "per_pose_mm": res.residuals_mm.tolist(),
+                        "per_pose_deg": res.residuals_deg.tolist(),
+                        "start_method": res.start_method, "out": path},
+                 f"T_B_C (camera in base) from {res.n_poses} poses, refined from "
+                 f"{res.start_method}: residual RMS {res.rms_mm:.3f} mm / {res.rms_deg:.3f} deg, "
+                 f"1-sigma {res.sigma_T_B_C_mm:.3f} mm / {res.sigma_T_B_C_deg:.4f} deg\n"
+                 f"{_matrix(res.T_B_C)}\nper pose (mm): "
+                 + " ".join(f"{v:.3f}" for v in res.residuals_mm))
+    return 0
+
+
+# -- endoscope to opener, end-effector zero and marker ----------------------------------
+def cmd_endoscope_opener(args: argparse.Namespace) -> int:
+    _needs_cell(args)
+    a, info = _samples(args, {"--opener": args.opener, "--board-camera": args.board_camera,
+                              "--board-endoscope": args.board_endoscope})
+    res = calibrate_endoscope_opener(a["--opener"], a["--board-camera"], a["--board-endoscope"])
+    return _averaged(args, "endoscope_opener", "T_OM_En", res, info, "eq. 2, SE(3) mean")
+
+
+def cmd_effector_zero(args: argparse.Namespace) -> int:
+    _needs_cell(args)
+    a, info = _samples(args, {"--marker": args.marker, "--flange": args.flange})
+    he = _load(args.hand_eye, "hand_eye", args.cell)
+    if args.tip:
+        p, raw = read_points(args.tip, "--tip")
+        p = p * LENGTH_UNITS[args.unit]
+    else:
+        if not (args.pointer and args.pivot):
+            raise SampleFileError("give the tip positions (--tip) or the pointer's poses and "
+                                  "its pivot calibration (--pointer and --pivot)")
+        ptr, raw = read_matrices(args.pointer, "--pointer")
+        ptr = _scaled(validate_tracking_matrices(ptr, f"{args.pointer}: --pointer"), args.unit)
+        tip = _load(args.pivot, "pivot", args.cell)["tip_offset"]
+        p = ptr[:, :3, :3] @ tip + ptr[:, :3, 3]
+    info = SampleInfo(info.count, samples_digest([info.sha256.encode(), raw]), info.source)
+    res = calibrate_effector_zero(a["--marker"], p, he["T_B_C"], a["--flange"])
+    return _averaged(args, "effector_zero", "T_RM_E0", res, info, "eqs. 3-4, SE(3) mean")
+
+
+def cmd_effector_marker(args: argparse.Namespace) -> int:
+    _needs_cell(args)
+    a, info = _samples(args, {"--opener": args.opener, "--effector-marker": args.effector_marker,
+                              "--robot-marker": args.robot_marker})
+    he = _load(args.hand_eye, "hand_eye", args.cell)
+    eo = _load(args.endoscope_opener, "endoscope_opener", args.cell)
+    ez = _load(args.effector_zero, "effector_zero", args.cell)
+    T_RM_E0 = ez["T_RM_E0"]
+    T_B_E0 = np.stack([extraoral_T_B_E0(he["T_B_C"], T, T_RM_E0[:3, :3], T_RM_E0[:3, 3])
+                       for T in a["--robot-marker"]])
+    res = calibrate_effector_marker(he["T_B_C"], a["--opener"], eo["T_OM_En"],
+                                    a["--effector-marker"], T_B_E0)
+    return _averaged(args, "effector_marker", "T_EM_E", res, info, "eq. 7, SE(3) mean")
+
+
+# -- simulated capture and the whole chain -------------------------------------------
+#: What ``capture`` writes: folder -> files (stacked 4x4 matrices, metres; the pivot's
+#: pointer poses in millimetres, the pointer format of ``calibrate pivot``).
+CAPTURE_FILES = {
+    "hand_eye": ("T_B_tcp.txt", "T_C_RM.txt"),
+    "endoscope_opener": ("T_C_OM.txt", "T_C_CB.txt", "T_En_CB.txt"),
+    "pivot": ("T_C_SI_mm.txt",),
+    "effector_zero": ("T_C_RM.txt", "T_C_SI.txt", "T_B_J6.txt"),
+    "effector_marker": ("T_C_OM.txt", "T_En_EM.txt", "T_C_RM.txt"),
+}
+
+
+def _save_stack(path: Path, T: np.ndarray) -> None:
+    atomic_write_text(path, "".join(
+        " ".join(f"{v:.12g}" for v in row) + "\n" for row in np.asarray(T).reshape(-1, 4)))
+
+
+def cmd_capture(args: argparse.Namespace) -> int:
+    from oralnav.config.daemon import load_config
+    from oralnav.sim.calibration_chain import ChainSimulator
+
+    cfg = load_config(args.config)
+    if cfg.cell is None:
+        raise SampleFileError(f"{cfg.path}: [cell] sim_cell: capture needs the simulated cell")
+    if args.samples < 3:
+        raise SampleFileError("--samples must be at least 3")
+    out = Path(args.out)
+    sim = ChainSimulator(cfg.cell, args.corner_noise, np.random.default_rng(args.seed))
+    n = args.samples
+    steps = {
+        "hand_eye": lambda: sim.hand_eye_samples(n),
+        "endoscope_opener": lambda: sim.endoscope_opener_samples(n),
+        "pivot": lambda: (sim.pivot_samples(10 * n)[0] * _mm(),),
+        "effector_zero": lambda: sim.effector_zero_samples(n),
+        "effector_marker": lambda: sim.effector_marker_samples(n),
+    }
+    written: dict[str, list[str]] = {}
+    for k, (kind, make) in enumerate(steps.items(), 1):
+        _progress(f"[{k}/{len(steps)}] {kind}: the simulated arm moves through its poses")
+        arrays = make()
+        folder = out / kind
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, T in zip(CAPTURE_FILES[kind], arrays, strict=True):
+            _save_stack(folder / name, T)
+        written[kind] = [str(folder / f) for f in CAPTURE_FILES[kind]]
+    doc = {"out": str(out), "cell": cfg.cell.source, "samples": n,
+           "corner_noise_px": args.corner_noise, "seed": args.seed, "files": written}
+    atomic_write_text(out / "capture.json", json.dumps(doc, indent=1) + "\n")
+    _emit_result(args, doc, f"captured {n} samples per calibration ({10 * n} pivot poses) at "
+                 f"{args.corner_noise} px corner noise into {out}")
+    return 0
+
+
+def _mm() -> np.ndarray:
+    """Scale for stacked 4x4 matrices: translations to millimetres, rotations untouched."""
+    s = np.ones((4, 4))
+    s[:3, 3] = 1e3
+    return s
+
+
+def chain_commands(samples: Path, out: Path, cell: str) -> list[list[str]]:
+    """The ``oralnav calibrate`` command lines that calibrate the whole chain, in order,
+    from a ``capture`` folder into ``out`` (one calibration file per kind)."""
+    s = {k: [str(samples / k / f) for f in files] for k, files in CAPTURE_FILES.items()}
+    o = {k: str(out / f"{k}.toml") for k in CAPTURE_FILES}
+    tail = ["--cell", cell]
+    return [
+        ["hand-eye", "--robot", s["hand_eye"][0], "--marker", s["hand_eye"][1],
+         "--out", o["hand_eye"], *tail],
+        ["endoscope-opener", "--opener", s["endoscope_opener"][0], "--board-camera",
+         s["endoscope_opener"][1], "--board-endoscope", s["endoscope_opener"][2],
+         "--out", o["endoscope_opener"], *tail],
+        ["pivot", "--matrices", s["pivot"][0], "--unit", "mm", "--out", o["pivot"], *tail],
+        ["effector-zero", "--marker", s["effector_zero"][0], "--pointer", s["effector_zero"][1],
+         "--pivot", o["pivot"], "--flange", s["effector_zero"][2], "--hand-eye", o["hand_eye"],
+         "--out", o["effector_zero"], *tail],
+        ["effector-marker", "--opener", s["effector_marker"][0], "--effector-marker",
+         s["effector_marker"][1], "--robot-marker", s["effector_marker"][2],
+         "--hand-eye", o["hand_eye"], "--endoscope-opener", o["endoscope_opener"],
+         "--effector-zero", o["effector_zero"], "--out", o["effector_marker"], *tail],
+    ]
+
+
+def cmd_chain(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    parser = argparse.ArgumentParser(prog="oralnav calibrate")
+    add_parser(parser.add_subparsers(dest="group"), nested=True)
+    files = {}
+    for k, argv in enumerate(chain_commands(Path(args.samples), out, args.cell), 1):
+        _progress(f"[{k}/5] oralnav calibrate {' '.join(argv)}")
+        step = parser.parse_args(argv)
+        step.json = False
+        # each step prints its own summary; --json keeps stdout to the one final object
+        if args.json:
+            import contextlib
+            import io
+            with contextlib.redirect_stdout(io.StringIO()) as buf:
+                step.func(step)
+            _progress(buf.getvalue().rstrip())
+        else:
+            step.func(step)
+        files[argv[0]] = step.out
+    _emit_result(args, {"out": str(out), "cell": args.cell, "files": files},
+                 f"wrote {len(files)} calibration files into {out}")
+    return 0
+
+
+def add_parser(sub: argparse._SubParsersAction, nested: bool = False) -> None:
     """Register ``oralnav calibrate ...`` on the top-level subparsers."""
-    cal = sub.add_parser("calibrate", help="calibrations from recorded samples "
-                         "(docs/calibration.md)").add_subparsers(dest="cmd", required=True)
+    cal = sub if nested else sub.add_parser(
+        "calibrate", help="calibrations from recorded samples (docs/calibration.md)"
+    ).add_subparsers(dest="cmd", required=True)
 
     def common(p: argparse.ArgumentParser) -> None:
         p.add_argument("--out", help="calibration file to write (atomically)")
@@ -135,3 +417,75 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     pv.add_argument("--seed", type=int, default=0, help="seed of RANSAC's subsets")
     common(pv)
     pv.set_defaults(func=cmd_pivot)
+
+    def unit(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--unit", default="m", choices=sorted(LENGTH_UNITS),
+                       help="length unit of the sample files (default m)")
+
+    he = cal.add_parser("hand-eye", help="the stereo camera in the robot base (T_B_C) and the "
+                        "robot marker on the TCP, from robot motions")
+    he.add_argument("--robot", required=True, help="stacked 4x4 TCP poses T_B_tcp from the arm")
+    he.add_argument("--marker", required=True,
+                    help="stacked 4x4 robot-marker poses T_C_RM seen at those TCP poses")
+    he.add_argument("--method", default="auto", choices=["auto", *HAND_EYE_METHODS],
+                    help="closed-form start before the joint refinement (auto: the best)")
+    unit(he)
+    common(he)
+    he.set_defaults(func=cmd_hand_eye)
+
+    eo = cal.add_parser("endoscope-opener", help="the endoscope on the opener (T_OM_En, "
+                        "eqs. 1-2) from a board both cameras see")
+    eo.add_argument("--opener", required=True, help="stacked T_C_OM (stereo camera)")
+    eo.add_argument("--board-camera", required=True, help="stacked T_C_CB (stereo camera)")
+    eo.add_argument("--board-endoscope", required=True, help="stacked T_En_CB (endoscope)")
+    unit(eo)
+    common(eo)
+    eo.set_defaults(func=cmd_endoscope_opener)
+
+    ez = cal.add_parser("effector-zero", help="the end-effector zero frame on the robot "
+                        "marker (T_RM_E0, eqs. 3-4) from pointer touches")
+    ez.add_argument("--marker", required=True, help="stacked T_C_RM at each touch")
+    ez.add_argument("--flange", required=True, help="stacked T_B_J6 (arm flange) at each touch")
+    ez.add_argument("--hand-eye", required=True, help="hand_eye calibration file")
+    ez.add_argument("--tip", help="the pointer tip at each touch, N rows of x y z (camera)")
+    ez.add_argument("--pointer", help="instead of --tip: stacked pointer poses T_C_SI ...")
+    ez.add_argument("--pivot", help="... and the pointer's pivot calibration file")
+    unit(ez)
+    common(ez)
+    ez.set_defaults(func=cmd_effector_zero)
+
+    em = cal.add_parser("effector-marker", help="the end-effector in its marker's frame "
+                        "(T_EM_E, eq. 7), wrist at zero inside the mouth")
+    em.add_argument("--opener", required=True, help="stacked T_C_OM")
+    em.add_argument("--effector-marker", required=True, help="stacked T_En_EM (endoscope)")
+    em.add_argument("--robot-marker", required=True, help="stacked T_C_RM (for eq. 5)")
+    em.add_argument("--hand-eye", required=True, help="hand_eye calibration file")
+    em.add_argument("--endoscope-opener", required=True,
+                    help="endoscope_opener calibration file")
+    em.add_argument("--effector-zero", required=True, help="effector_zero calibration file")
+    unit(em)
+    common(em)
+    em.set_defaults(func=cmd_effector_marker)
+    if nested:
+        return
+
+    cp = cal.add_parser("capture", help="record every chain calibration's samples on the "
+                        "simulated cell (the arm moves itself through the poses)")
+    cp.add_argument("--config", default=None, help="daemon configuration with [cell] sim_cell "
+                    "(default: the shipped sim.toml)")
+    cp.add_argument("--out", required=True, help="folder for the sample files")
+    cp.add_argument("--samples", type=int, default=15, help="samples per calibration "
+                    "(the pivot records 10x as many poses; default 15)")
+    cp.add_argument("--corner-noise", type=float, default=0.15,
+                    help="marker-corner noise, px (default 0.15, the tracker's residual)")
+    cp.add_argument("--seed", type=int, default=0)
+    cp.add_argument("--json", action="store_true", help="print one JSON object")
+    cp.set_defaults(func=cmd_capture)
+
+    ch = cal.add_parser("chain", help="run the five chain calibrations in order on a capture "
+                        "folder, writing one file per kind")
+    ch.add_argument("--samples", required=True, help="a folder written by capture")
+    ch.add_argument("--out", required=True, help="folder for the calibration files")
+    ch.add_argument("--cell", required=True, help="the cell the calibrations belong to")
+    ch.add_argument("--json", action="store_true", help="print one JSON object")
+    ch.set_defaults(func=cmd_chain)

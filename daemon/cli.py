@@ -8,7 +8,7 @@
     oralnav track --calibration NAME=calibration.txt [--fields FIELDS] [--body NAME=PATH ...]
                   [--tag NAME=DICT:ID:SIDE_MM ...] --replay NAME=VIDEO [--frames N] [--json]
     oralnav calibrate pivot --matrices FILE [--method M] [--json] [--out F --cell ID]
-    oralnav bench navigation [--quick] --out DIR
+    oralnav bench navigation|control|calibration [--quick] --out DIR
 
 Every ``--json`` prints exactly one JSON object on stdout; progress and logs go to stderr.
 Exit status: 0 done, 2 bad input (the message names the file and key), 1 anything else.
@@ -307,9 +307,9 @@ def _track_replay(args: argparse.Namespace, tracker, sources: dict[str, Path]) -
 
 # -- oralnav bench --------------------------------------------------------------------
 def cmd_bench(args: argparse.Namespace) -> int:
-    from oralnav.bench import control, navigation
+    from oralnav.bench import calibration, control, navigation
 
-    bench = {"navigation": navigation, "control": control}[args.cmd]
+    bench = {"navigation": navigation, "control": control, "calibration": calibration}[args.cmd]
     bench.main(Path(args.out), quick=args.quick)
     return 0
 
@@ -387,6 +387,11 @@ def build_parser() -> argparse.ArgumentParser:
     cl.add_argument("--quick", action="store_true", help="8 s per run instead of 60 s")
     cl.add_argument("--out", required=True, help="folder for control.json and its chart")
     cl.set_defaults(func=cmd_bench)
+    cb = bn.add_parser("calibration", help="TRE of the calibrated chain against the number "
+                                           "of samples and the corner noise (minutes)")
+    cb.add_argument("--quick", action="store_true", help="8 trials a point instead of 30")
+    cb.add_argument("--out", required=True, help="folder for calibration.json and its chart")
+    cb.set_defaults(func=cmd_bench)
     return p
 
 

@@ -9,8 +9,9 @@ pose. The pose errors then carry the estimator's real correlations (depth worse 
 lateral, rotation and translation coupled) at a few milliseconds a pose.
 
 A corner is visible when it projects into the image, lies in front of the camera and its
-printed face turns toward the camera by less than ``max_obliquity_deg``; occlusion by
-other fields is not modelled (calibration views keep fields apart).
+printed face turns toward the camera by less than the tracker's ``max_obliquity_deg``;
+occlusion by other fields is not modelled (calibration views keep fields apart). Estimates
+pass the tracker's gates (``TrackerSettings``) or are not reported, as in the tracker.
 """
 
 from __future__ import annotations
@@ -23,11 +24,14 @@ from oralnav.control.camera import CameraModel, Rig
 from oralnav.control.geometry import transform_points
 from oralnav.control.markers import MarkerField
 from oralnav.control.pose import Observation, PoseEstimate, estimate_pose
+from oralnav.control.tracker import TrackerSettings
 
 __all__ = ["observe", "measure_pose", "MIN_CORNERS"]
 
+#: The tracker's own gates: what it would refuse to report is not a measurement here either.
+_GATE = TrackerSettings()
 #: Fewest corners a camera must see for its observation to be used (as the tracker's gate).
-MIN_CORNERS = 6
+MIN_CORNERS = _GATE.min_corners
 
 
 def _visible(fld: MarkerField, cam: CameraModel, T_cam_field: np.ndarray,
@@ -46,7 +50,7 @@ def _visible(fld: MarkerField, cam: CameraModel, T_cam_field: np.ndarray,
 
 def observe(fld: MarkerField, T_ref_field: np.ndarray, rig: Rig, sigma_px: float,
             rng: np.random.Generator, *, cameras: Sequence[str] | None = None,
-            max_obliquity_deg: float = 70.0) -> list[Observation]:
+            max_obliquity_deg: float = _GATE.max_obliquity_deg) -> list[Observation]:
     """Noisy corner observations of ``fld`` at ``T_ref_field`` (rig reference frame, m).
 
     Each visible corner's pixel gets independent Gaussian noise of ``sigma_px`` per axis.
@@ -66,8 +70,14 @@ def measure_pose(fld: MarkerField, T_ref_field: np.ndarray, rig: Rig, sigma_px: 
                  rng: np.random.Generator, *, method: str = "nvgba",
                  cameras: Sequence[str] | None = None) -> PoseEstimate | None:
     """The pose the tracker would report for ``fld`` at ``T_ref_field``, or None when no
-    camera sees enough corners. ``method`` as :func:`~oralnav.control.pose.estimate_pose`."""
+    camera sees enough corners or the estimate fails the tracker's gates (reprojection RMS,
+    covariance: a few corners at one edge of one image give a pose off by centimetres, which
+    the tracker refuses). ``method`` as :func:`~oralnav.control.pose.estimate_pose`."""
     obs = observe(fld, T_ref_field, rig, sigma_px, rng, cameras=cameras)
     if not obs:
         return None
-    return estimate_pose(fld, obs, method=method)  # type: ignore[arg-type]
+    est = estimate_pose(fld, obs, method=method)  # type: ignore[arg-type]
+    if est is None or not est.within(_GATE.max_rms_px, _GATE.max_position_sigma_mm,
+                                     _GATE.max_rotation_sigma_deg, _GATE.min_corners):
+        return None
+    return est

@@ -28,15 +28,15 @@ def test_noise_free_corners_give_the_true_pose():
 
 
 def test_pose_error_grows_with_corner_noise():
-    """RMS position error over 30 draws rises with sigma (0.1 px against 1 px)."""
+    """RMS position error over 30 draws rises with sigma (0.05 px against 0.5 px)."""
     def rms(sigma: float) -> float:
         rng = np.random.default_rng(1)
         return float(np.sqrt(np.mean([
             pose_error(measure_pose(OPENER, T_C_OM, RIG, sigma, rng).T_ref_field, T_C_OM)[0]
             ** 2 for _ in range(30)])))
-    lo, hi = rms(0.1), rms(1.0)
+    lo, hi = rms(0.05), rms(0.5)
     assert 5 < hi / lo < 20      # linear in sigma up to the draws' scatter
-    assert lo < 5e-5             # 0.1 px: tens of micrometres at 0.6 m
+    assert lo < 3e-5             # 0.05 px: about ten micrometres at 0.2 m
 
 
 def test_only_facing_corners_in_the_image_are_observed():
@@ -46,3 +46,8 @@ def test_only_facing_corners_in_the_image_are_observed():
     behind = T_C_OM.copy()
     behind[2, 3] = -0.5
     assert measure_pose(OPENER, behind, RIG, 0.1, np.random.default_rng(0)) is None
+
+
+def test_estimates_the_tracker_would_refuse_are_not_reported():
+    """At 2 px corner noise the reprojection RMS exceeds the tracker's 1 px gate: None."""
+    assert measure_pose(OPENER, T_C_OM, RIG, 2.0, np.random.default_rng(0)) is None
