@@ -120,7 +120,12 @@ class ChainSimulator:
             if tries > 5 * n + 20:
                 raise MeasurementLost(f"{what}: only {len(out)} of {n} samples measurable in "
                                       f"{tries - 1} draws; check the poses and the view")
-            s = make()
+            try:
+                s = make()
+            except StopIteration:  # the planned poses ran out
+                raise MeasurementLost(f"{what}: only {len(out)} of {n} samples measurable "
+                                      "over the planned poses; check the poses and the "
+                                      "view") from None
             if s is not None:
                 out.append(s)
         return out
@@ -134,7 +139,7 @@ class ChainSimulator:
     # -- samples per calibration -----------------------------------------------------
     def hand_eye_samples(self, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """Robot at ``n`` planned poses around home: ``(T_B_tcp, measured T_C_RM)``."""
-        it = iter(self._arm_poses(n + 10, seed))
+        it = iter(self._arm_poses(3 * n + 10, seed))
 
         def one() -> tuple | None:
             T_B_tcp = next(it)
@@ -209,7 +214,7 @@ class ChainSimulator:
                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Arm at ``n`` poses near home, wrist at zero, the pointer's tip on the
         end-effector origin: ``(T_C_RM, T_C_SI, T_B_J6)``."""
-        poses = iter(self._arm_poses(n + 10, seed))
+        poses = iter(self._arm_poses(3 * n + 10, seed))
 
         def one() -> tuple | None:
             T_B_tcp = next(poses)
