@@ -133,10 +133,17 @@ def cmd_config_check(args: argparse.Namespace) -> int:
            "cameras": list(cfg.rig.names),
            "endoscope": list(cfg.endoscope_rig.names) if cfg.endoscope_rig else [],
            "fields": sorted(cfg.fields), "rate_hz": s.control.rate_hz,
-           "api": f"{s.api.host}:{s.api.port}"}
+           "api": f"{s.api.host}:{s.api.port}",
+           "calibrations": {k: {"file": c.source, "method": c.method, "created": c.created}
+                            for k, c in cfg.calibrations.items()},
+           "calibrations_missing": cfg.missing_calibrations()}
+    cals = (f"; calibrations of cell {s.calibration.cell!r}: {', '.join(cfg.calibrations)}"
+            if cfg.calibrations and s.calibration else "; no calibration files")
+    if doc["calibrations_missing"]:
+        cals += f" (missing: {', '.join(doc['calibrations_missing'])})"
     _emit(args, doc, f"{cfg.path}: valid ({s.cell.backend} cell, cameras "
                      f"{', '.join(doc['cameras'] + doc['endoscope'])}, fields "
-                     f"{', '.join(doc['fields'])})")
+                     f"{', '.join(doc['fields'])}{cals})")
     return 0
 
 

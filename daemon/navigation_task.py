@@ -73,15 +73,13 @@ def nav_calibration(calibrations: Mapping[str, Calibration], cell: SimCell | Non
                     ) -> NavCalibration:
     """The navigation chain's calibration from the configuration's files (kind ->
     :class:`Calibration`); on the simulated cell, a kind without a file falls back to the
-    cell's truth, with a warning. Raises ``KeyError`` naming the missing kinds otherwise."""
+    cell's truth (the service logs which). Raises ``KeyError`` naming the missing kinds
+    otherwise."""
     missing = [k for k in NAVIGATION_CALIBRATIONS if k not in calibrations]
     if missing and cell is None:
         raise KeyError(f"no calibration file for {', '.join(missing)} ([calibration] in the "
                        "configuration; docs/calibration.md)")
     truth = sim_calibration(cell) if cell is not None else None
-    if missing:
-        log.warning("no calibration file for %s: using the simulated cell's true geometry "
-                    "there", ", ".join(missing))
 
     def pick(kind: str, key: str, attr: str) -> np.ndarray:
         cal = calibrations.get(kind)

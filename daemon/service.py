@@ -118,6 +118,10 @@ async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
         # before the control loop starts: preparing is seconds of work on every core
         _log("preparing the simulated cell (camera ray maps, textures)...")
         await anyio.to_thread.run_sync(cell.prepare)
+        missing = cfg.missing_calibrations()
+        _log("navigation calibration: " + (
+            f"files of cell {s.calibration.cell!r}" if s.calibration and not missing else
+            f"the simulated cell's truth for {', '.join(missing)}"))
         nav = NavigationTask(core, cell, SimCameraSet(cell.camera_names, cell), probe,
                              calibration=nav_calibration(cfg.calibrations, cell),
                              progress=lambda msg: _log(msg))
