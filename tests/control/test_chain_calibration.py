@@ -53,16 +53,20 @@ def _boards(n: int, rng: np.random.Generator) -> np.ndarray:
     return np.stack(out)
 
 
+def _opener_views(n: int, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    """``n`` noisy simultaneous views ``(T_C_OM, T_C_CB, T_En_CB)`` of boards before the
+    endoscope, the opener in its place in the cell."""
+    T_C_OM_true = invert(G.T_B_C) @ G.T_B_OM
+    T_OM_CB = _boards(n, rng)
+    return (np.stack([_noisy(T_C_OM_true, rng) for _ in T_OM_CB]),
+            np.stack([_noisy(T_C_OM_true @ b, rng) for b in T_OM_CB]),
+            np.stack([_noisy(invert(G.T_OM_En) @ b, rng) for b in T_OM_CB]))
+
+
 def test_endoscope_to_opener_recovers_the_truth_with_its_spread():
     """Eq. 2 averaged over 20 noisy simultaneous views lands within 0.1 mm and 0.05 deg of
     the true T_OM_En; the reported spread matches the per-sample scatter."""
-    rng = np.random.default_rng(1)
-    T_C_OM_true = invert(G.T_B_C) @ G.T_B_OM
-    T_OM_CB = _boards(20, rng)
-    T_C_OM = np.stack([_noisy(T_C_OM_true, rng) for _ in T_OM_CB])
-    T_C_CB = np.stack([_noisy(T_C_OM_true @ b, rng) for b in T_OM_CB])
-    T_En_CB = np.stack([_noisy(invert(G.T_OM_En) @ b, rng) for b in T_OM_CB])
-    res = calibrate_endoscope_opener(T_C_OM, T_C_CB, T_En_CB)
+    res = calibrate_endoscope_opener(*_opener_views(20, np.random.default_rng(1)))
     dt_mm, dr_deg = _err(res.T, G.T_OM_En)
     assert res.n_used == 20
     assert dt_mm < 0.1 and dr_deg < 0.05, (dt_mm, dr_deg)
@@ -75,12 +79,7 @@ def test_endoscope_to_opener_recovers_the_truth_with_its_spread():
 
 def test_a_moved_sample_is_rejected_and_reported():
     """A view where the board slipped between the cameras' exposures (2 mm) is left out."""
-    rng = np.random.default_rng(2)
-    T_C_OM_true = invert(G.T_B_C) @ G.T_B_OM
-    T_OM_CB = _boards(12, rng)
-    T_C_OM = np.stack([_noisy(T_C_OM_true, rng) for _ in T_OM_CB])
-    T_C_CB = np.stack([_noisy(T_C_OM_true @ b, rng) for b in T_OM_CB])
-    T_En_CB = np.stack([_noisy(invert(G.T_OM_En) @ b, rng) for b in T_OM_CB])
+    T_C_OM, T_C_CB, T_En_CB = _opener_views(12, np.random.default_rng(2))
     T_C_CB[5][:3, 3] += [0.002, 0.0, 0.0]
     res = calibrate_endoscope_opener(T_C_OM, T_C_CB, T_En_CB)
     assert not res.used[5] and res.used.sum() == 11
