@@ -12,6 +12,11 @@
                                       --robot-marker T_C_RM.txt --hand-eye FILE
                                       --endoscope-opener FILE --effector-zero FILE
     (each also [--unit m|mm] [--out FILE --cell ID] [--json])
+    oralnav calibrate camera --images DIR --fields F [--board NAME] [--model M] [--rig-out R]
+    oralnav calibrate stereo --left DIR --right DIR --fields F [--board NAME] [--rig-out R]
+    oralnav calibrate capture-views --rig RIG --out DIR [--views N]     (simulated images)
+    oralnav calibrate capture --out DIR [--samples N] [--corner-noise PX]   (simulated cell)
+    oralnav calibrate chain --samples DIR --out DIR --cell ID
 
 Sample files are plain text, as numpy writes them (``numpy.savetxt``): a stack of 4x4
 matrices is 4N rows of 4 numbers (the scikit-surgery pivot format), a list of points N rows
@@ -38,7 +43,7 @@ from oralnav.config.calibration import (
     samples_digest,
     save_calibration,
 )
-from oralnav.config.loader import atomic_write_text
+from oralnav.config.loader import atomic_write_bytes, atomic_write_text
 from oralnav.control.chain_calibration import (
     AveragedPose,
     calibrate_effector_marker,
@@ -286,6 +291,159 @@ def cmd_effector_marker(args: argparse.Namespace) -> int:
     return _averaged(args, "effector_marker", "T_EM_E", res, info, "eq. 7, SE(3) mean")
 
 
+# -- camera intrinsics and stereo from images -----------------------------------------
+def _board(args: argparse.Namespace):
+    from oralnav.config.fields import load_fields
+
+    fields = load_fields(args.fields)
+    if args.board not in fields:
+        raise SampleFileError(f"{args.fields}: no field {args.board!r}; it has {sorted(fields)}")
+    return fields[args.board]
+
+
+def _images(folder: str | Path, what: str) -> list[Path]:
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise SampleFileError(f"{folder}: {what}: not a folder of images")
+    files = sorted(p for p in folder.iterdir()
+                   if p.suffix.lower() in (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg"))
+    if not files:
+        raise SampleFileError(f"{folder}: {what}: no images (png, tif, bmp, jpg)")
+    return files
+
+
+def _detect(files: list[Path], board, what: str) -> tuple[list, tuple[int, int], bytes]:
+    """Detect ``board`` in every image: (views, (width, height), the images' digest)."""
+    import cv2
+
+    from oralnav.control.detection import detect_fields
+
+    views, size, raws = [], None, []
+    for k, f in enumerate(files):
+        raw = f.read_bytes()
+        img = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise SampleFileError(f"{f}: {what}: not a readable image")
+        if size is None:
+            size = (img.shape[1], img.shape[0])
+        elif size != (img.shape[1], img.shape[0]):
+            raise SampleFileError(f"{f}: {what}: {img.shape[1]}x{img.shape[0]} px, but "
+                                  f"{files[0].name} is {size[0]}x{size[1]}: one camera, one size")
+        views.append(detect_fields(img, [board]).get(board.name))
+        raws.append(raw)
+        if (k + 1) % 10 == 0 or k + 1 == len(files):
+            _progress(f"{what}: detected the board in {sum(v is not None for v in views)} of "
+                      f"{k + 1} images")
+    assert size is not None
+    return views, size, samples_digest(raws).encode()
+
+
+def cmd_camera(args: argparse.Namespace) -> int:
+    from oralnav.control.camera import Rig
+    from oralnav.control.camera_calibration import calibrate_camera
+
+    _needs_cell(args)
+    board = _board(args)
+    files = _images(args.images, "--images")
+    views, size, digest = _detect(files, board, "--images")
+    res = calibrate_camera(views, board, size, model=args.model)
+    if res.model == "fisheye":
+        raise SampleFileError("the rig format holds OpenCV's standard and rational models; a "
+                              "fisheye fit cannot be written (use --model rational)")
+    rig = Rig(args.name, {args.name: res.camera_model(args.name, np.eye(4))})
+    return _rig_result(args, "camera", rig, res.to_dict(), len(files), digest,
+                       f"{args.name}: {res.model} model from {len(res.used)} of {len(files)} "
+                       f"views, RMS {res.rms:.3f} px; fx {res.K[0, 0]:.2f} fy {res.K[1, 1]:.2f} "
+                       f"cx {res.K[0, 2]:.2f} cy {res.K[1, 2]:.2f}\n{res.coverage.describe()}")
+
+
+def cmd_stereo(args: argparse.Namespace) -> int:
+    from oralnav.control.camera_calibration import calibrate_camera, calibrate_stereo
+
+    _needs_cell(args)
+    board = _board(args)
+    names = args.names.split(",")
+    if len(names) != 2 or not all(names):
+        raise SampleFileError(f"--names: expected two camera names, e.g. left,right; got "
+                              f"{args.names!r}")
+    lf, rf = _images(args.left, "--left"), _images(args.right, "--right")
+    if [p.name for p in lf] != [p.name for p in rf]:
+        raise SampleFileError(f"{args.left} and {args.right}: the image names differ; a "
+                              "stereo pair must share its name in both folders")
+    lv, lsize, ld = _detect(lf, board, "--left")
+    rv, rsize, rd = _detect(rf, board, "--right")
+    cams = [calibrate_camera(v, board, sz, model=args.model) for v, sz in ((lv, lsize),
+                                                                          (rv, rsize))]
+    left, right = (c.camera_model(n, np.eye(4)) for c, n in zip(cams, names, strict=True))
+    res = calibrate_stereo(lv, rv, board, left, right, refine_intrinsics=args.refine)
+    doc = res.to_dict()
+    doc["intrinsics"] = {n: c.to_dict() for n, c in zip(names, cams, strict=True)}
+    return _rig_result(args, "stereo", res.rig(), doc, len(lf), samples_digest([ld, rd]).encode(),
+                       f"{names[1]} in {names[0]}: baseline {res.baseline * 1e3:.3f} mm, RMS "
+                       f"{res.rms:.3f} px, epipolar RMS {res.epipolar_rms_px:.3f} px, from "
+                       f"{len(res.used)} of {len(lf)} pairs\n{_matrix(res.T_left_right)}")
+
+
+def _rig_result(args: argparse.Namespace, kind: str, rig, doc: dict, n: int, digest: bytes,
+                text: str) -> int:
+    from oralnav.config.rig import save_rig
+
+    # a view without the board has no error: written as -1 (TOML has no NaN)
+    per_view = np.array([[-1.0 if e is None else e for e in np.atleast_1d(row)]
+                         for row in doc["per_view_rms_px"]], dtype=float)
+    cal = Calibration(kind=kind, cell=args.cell or "", method=f"opencv {doc.get('model', kind)}",
+                      values={"rig": rig},
+                      samples=SampleInfo(n, digest.decode(), str(getattr(args, "images", "")
+                                                                  or f"{args.left}, {args.right}")),
+                      residuals={"rms_px": float(doc["rms_px"]),
+                                 "per_view_rms_px": per_view.ravel().tolist()},
+                      quality={"used_views": [float(i) for i in doc.get("used", [])]})
+    path = _write(args, cal)
+    if args.rig_out:
+        save_rig(rig, args.rig_out)
+        _progress(f"wrote rig file {args.rig_out}")
+    doc.update({"kind": kind, "out": path, "rig_out": args.rig_out})
+    _emit_result(args, doc, text)
+    return 0
+
+
+def cmd_capture_views(args: argparse.Namespace) -> int:
+    import cv2
+
+    from oralnav.config.loader import dump_toml
+    from oralnav.config.rig import load_rig
+    from oralnav.sim.calibration_views import render_calibration_views
+
+    rig = load_rig(args.rig)
+    names = args.cameras.split(",") if args.cameras else list(rig.names)
+    out = Path(args.out)
+    for n in names:
+        (out / n).mkdir(parents=True, exist_ok=True)
+
+    def save(k: int, images) -> None:
+        for cam, img in images.items():
+            ok, buf = cv2.imencode(".png", img)
+            if not ok:
+                raise RuntimeError(f"PNG encoding failed for camera {cam!r}")
+            atomic_write_bytes(out / cam / f"view_{k:03d}.png", buf.tobytes())
+
+    views = render_calibration_views(
+        rig, n=args.views, cameras=names, seed=args.seed, on_frame=save,
+        progress=lambda d, t: _progress(f"view {d}/{t} rendered") if d % 5 == 0 or d == t
+        else None)
+    b = views.board
+    atomic_write_text(out / "board.toml", "# the calibration board shown in the views\n"
+                      + dump_toml({"fields": {"board": {
+                          "family": "charuco", "dictionary": b.dictionary,
+                          "squares": list(b.squares), "square": b.square, "marker": b.marker,
+                          "first_id": b.first_id, "surface": {"kind": "plane"}}}}))
+    doc = {"out": str(out), "cameras": names, "views": len(views),
+           "fields": str(out / "board.toml"), "board": "board"}
+    _emit_result(args, doc, f"rendered {len(views)} views of the board through "
+                 f"{', '.join(names)} into {out} (board in {out / 'board.toml'})")
+    return 0
+
+
 # -- simulated capture and the whole chain -------------------------------------------
 #: What ``capture`` writes: folder -> files (stacked 4x4 matrices, metres; the pivot's
 #: pointer poses in millimetres, the pointer format of ``calibrate pivot``).
@@ -466,8 +624,43 @@ def add_parser(sub: argparse._SubParsersAction, nested: bool = False) -> None:
     unit(em)
     common(em)
     em.set_defaults(func=cmd_effector_marker)
+    def board(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--fields", required=True, help="marker-field TOML describing the board")
+        p.add_argument("--board", default="board", help="the board's name in --fields")
+        p.add_argument("--model", default="standard", choices=["standard", "rational"],
+                       help="distortion model: standard (5 coefficients) or rational (8, for "
+                            "strong distortion such as the endoscope's)")
+        p.add_argument("--rig-out", help="also write the result as a rig file")
+        common(p)
+
+    cm = cal.add_parser("camera", help="one camera's intrinsics from ChArUco board images")
+    cm.add_argument("--images", required=True, help="folder of the camera's board images")
+    cm.add_argument("--name", default="camera", help="the camera's name in the rig")
+    board(cm)
+    cm.set_defaults(func=cmd_camera)
+
+    st = cal.add_parser("stereo", help="both cameras' intrinsics and the right camera in the "
+                        "left from synchronised board images")
+    st.add_argument("--left", required=True, help="folder of the left camera's images")
+    st.add_argument("--right", required=True, help="folder of the right camera's images "
+                    "(same file names: a pair per name)")
+    st.add_argument("--names", default="left,right", help="the cameras' names in the rig")
+    st.add_argument("--refine", action="store_true",
+                    help="refine the intrinsics in the stereo fit too")
+    board(st)
+    st.set_defaults(func=cmd_stereo)
     if nested:
         return
+
+    cv = cal.add_parser("capture-views", help="render ChArUco board views through a rig's "
+                        "simulated cameras (PNG per camera and view, and the board's fields file)")
+    cv.add_argument("--rig", required=True, help="rig TOML (its cameras are the truth)")
+    cv.add_argument("--cameras", help="comma-separated cameras (default: all)")
+    cv.add_argument("--out", required=True, help="folder: one subfolder of PNGs per camera")
+    cv.add_argument("--views", type=int, default=20)
+    cv.add_argument("--seed", type=int, default=0)
+    cv.add_argument("--json", action="store_true", help="print one JSON object")
+    cv.set_defaults(func=cmd_capture_views)
 
     cp = cal.add_parser("capture", help="record every chain calibration's samples on the "
                         "simulated cell (the arm moves itself through the poses)")

@@ -214,8 +214,9 @@ def render_calibration_views(rig: Rig | CameraModel, board: MarkerField | None =
                              tilt_deg: tuple[float, float] = (15.0, 45.0),
                              imaging: Imaging = CALIBRATION_IMAGING,
                              quad_params: QuadParams | None = None, seed: int = 0,
-                             progress: Callable[[int, int], None] | None = None
-                             ) -> CalibrationViews:
+                             progress: Callable[[int, int], None] | None = None,
+                             on_frame: Callable[[int, Mapping[str, np.ndarray]], None]
+                             | None = None) -> CalibrationViews:
     """Render ``n`` views of ``board`` through ``rig`` and detect its corners in each.
 
     ``rig`` may be a single :class:`CameraModel` (a one-camera rig is built around it).
@@ -225,7 +226,8 @@ def render_calibration_views(rig: Rig | CameraModel, board: MarkerField | None =
     ``board`` defaults to :func:`default_board`: ``"endoscope"`` when the first camera
     rendered is wide-angle (a horizontal field of view over 60 deg), else ``"stereo"``.
     The image noise of view ``k`` is the renderer's draw ``k`` for ``seed``.
-    ``progress(done, total)`` is called after each view. Cost on one core, 1920 x 1200:
+    ``progress(done, total)`` is called after each view, ``on_frame(k, images)`` with each
+    view's images (camera -> mono8), e.g. to save them. Cost on one core, 1920 x 1200:
     about 2.5 s per camera once (its ray map), then about 0.07 s per camera and view
     (render and detect, supersample 2).
     """
@@ -251,6 +253,8 @@ def render_calibration_views(rig: Rig | CameraModel, board: MarkerField | None =
     truth: dict[str, list[FieldTruth | None]] = {c: [] for c in names}
     for k, T in enumerate(poses):
         frame = renderer.render(poses={BOARD: T}, frame=k, cameras=names)
+        if on_frame is not None:
+            on_frame(k, frame.images)
         for c in names:
             found = detect_fields(frame.images[c], [board], quad_params or QuadParams())
             views[c].append(found.get(board.name))

@@ -156,3 +156,49 @@ def test_out_without_cell_is_refused(tmp_path, capsys):
     code = cli.run(["calibrate", "hand-eye", "--robot", "x", "--marker", "y", "--out",
                     str(tmp_path / "he.toml"), "--json"])
     assert code == 2 and "--cell" in _json(capsys)["error"]
+
+
+# -- intrinsics and stereo from images (item 1) ---------------------------------------------
+@pytest.fixture(scope="module")
+def stereo_views(tmp_path_factory) -> Path:
+    """16 rendered board views through the simulated stereo rig, as PNGs."""
+    out = tmp_path_factory.mktemp("views")
+    assert cli.run(["calibrate", "capture-views", "--rig", str(ROOT / "config/rigs/stereo.toml"),
+                    "--out", str(out), "--views", "16"]) == 0
+    return out
+
+
+def test_stereo_from_images_recovers_focal_and_baseline(stereo_views, tmp_path, capsys):
+    """Targets: focal length within 0.1 % and the stereo baseline within 0.05 mm of the
+    simulated rig, from PNG images through `oralnav calibrate stereo`; the calibration file
+    nests the rig and --rig-out writes a loadable rig file."""
+    from oralnav.config.rig import load_rig
+
+    v = stereo_views
+    assert cli.run(["calibrate", "stereo", "--left", str(v / "left"), "--right", str(v / "right"),
+                    "--fields", str(v / "board.toml"), "--out", str(tmp_path / "stereo.toml"),
+                    "--cell", "sim-cell", "--rig-out", str(tmp_path / "rig.toml"),
+                    "--json"]) == 0
+    doc = _json(capsys)
+    truth = load_rig(ROOT / "config/rigs/stereo.toml")
+    assert abs(doc["baseline_m"] - 0.1) < 0.05e-3
+    rig = load_rig(tmp_path / "rig.toml")
+    for name in ("left", "right"):
+        f, f_true = rig[name].K[0, 0], truth[name].K[0, 0]
+        assert abs(f / f_true - 1) < 1e-3, (name, f)
+    cal = load_calibration(tmp_path / "stereo.toml", kind="stereo", cell="sim-cell")
+    np.testing.assert_allclose(cal["rig"]["right"].T_ref_cam, rig["right"].T_ref_cam)
+
+
+def test_camera_from_images_refuses_too_few_views(stereo_views, tmp_path, capsys):
+    """Bad input: four images are too few for intrinsics; exit 2, nothing written."""
+    few = tmp_path / "few"
+    few.mkdir()
+    for p in sorted((stereo_views / "left").iterdir())[:4]:
+        (few / p.name).write_bytes(p.read_bytes())
+    out = tmp_path / "cam.toml"
+    code = cli.run(["calibrate", "camera", "--images", str(few), "--fields",
+                    str(stereo_views / "board.toml"), "--out", str(out), "--cell", "c",
+                    "--json"])
+    assert code == 2 and "view" in _json(capsys)["error"]
+    assert not out.exists()
