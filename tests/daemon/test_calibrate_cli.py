@@ -79,12 +79,13 @@ def test_daemon_navigates_on_the_calibration_files(chain, tmp_path):
     text = (ROOT / "config" / "sim.toml").read_text()
     text = text.replace('"rigs/', f'"{ROOT}/config/rigs/').replace(
         '"fields/', f'"{ROOT}/config/fields/').replace('"examples/', f'"{ROOT}/config/examples/')
-    text += '\n[calibration]\ncell = "oralnav-sim"\n' + "".join(
-        f'{k} = "{cal / (k + ".toml")}"\n'
-        for k in ("hand_eye", "endoscope_opener", "effector_zero", "effector_marker", "pivot"))
+    # the shipped [calibration] section, pointed at this test's files and cell
+    text = text.replace('"calibration/', f'"{cal}/').replace('cell = "sim-cell"',
+                                                             'cell = "oralnav-sim"')
     path = tmp_path / "oralnav.toml"
     path.write_text(text)
     cfg = load_config(path)
+    assert all(c.source.startswith(str(cal)) for c in cfg.calibrations.values())
     nav = nav_calibration(cfg.calibrations)   # no cell: every kind must come from a file
     np.testing.assert_array_equal(nav.T_B_C, cfg.calibrations["hand_eye"]["T_B_C"])
     np.testing.assert_array_equal(nav.T_EM_E, cfg.calibrations["effector_marker"]["T_EM_E"])
