@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from .errors import CalibrationError
 from .geometry import ROTATION_TOL
@@ -125,8 +126,6 @@ def validate_tracking_matrices(T: np.ndarray, what: str = "tracking matrices",
 
 def _rotation_spread_deg(R: np.ndarray) -> float:
     """Largest angle (deg) between any of the rotations ``R`` (N, 3, 3) and their chordal mean."""
-    from scipy.spatial.transform import Rotation
-
     rots = Rotation.from_matrix(R)
     mean = rots.mean()
     return float(np.degrees((mean.inv() * rots).magnitude().max()))
@@ -241,18 +240,16 @@ def pivot_calibration(T_W_tool: np.ndarray, method: str = "algebraic", *,
         raise PivotError(f"unknown pivot method {method!r}; use one of {list(METHODS)}")
     T = validate_tracking_matrices(T_W_tool, min_poses=3)
     spread = _rotation_spread_deg(T[:, :3, :3])
-    _, _, cond = _algebraic(T)  # refuses rank-deficient sets, whichever the method
+    p_tool, p_W, cond = _algebraic(T)  # refuses rank-deficient sets, whichever the method
     if spread < min_rotation_spread_deg:
         raise PivotError(f"the tool turned at most {spread:.2f} deg from its mean orientation "
                          f"over {len(T)} poses (need {min_rotation_spread_deg} deg): pivot it "
                          "further about two or more axes")
     inliers = np.ones(len(T), dtype=bool)
     details: dict = {}
-    if method == "algebraic":
-        p_tool, p_W, _ = _algebraic(T)
-    elif method == "sphere":
+    if method == "sphere":
         p_tool, p_W, details = _sphere(T)
-    else:
+    elif method == "ransac":
         p_tool, p_W, inliers, details = _ransac(T, ransac_iterations, ransac_sample_size,
                                                 ransac_threshold, ransac_min_consensus, seed)
     e = pivot_residuals(T, p_tool, p_W)
