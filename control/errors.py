@@ -24,3 +24,8 @@ class MarkerFieldError(ControlError, ValueError):
 class CalibrationError(ControlError, ValueError):
     """A calibration was refused: too few or degenerate samples, or samples that disagree
     beyond what the measurement noise explains. The message says what to capture instead."""
+
+
+class PlanningError(ControlError, ValueError):
+    """A planning input was refused: a mesh the surrogate model cannot fit (empty, not
+    enclosing a slice origin), a hole outside the model, or bad optimiser settings."""
