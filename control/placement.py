@@ -1,0 +1,296 @@
+"""Automatic placement of the feeding target on the surrogate model (seed 004, §4).
+
+Frames (Center frame of the model, metres): the implant hole ``{Hole}`` sits at ``t_ch`` on
+the tissue with its z axis ``D_hz`` along the hole's axis, pointing into the cavity, and
+its x axis parallel to the Center YZ plane (eqs. 15-17). The tool frame ``{Tool}`` is the
+hole frame moved ``d_T`` along that axis and turned ``theta_T`` about it (eq. 18). The
+instrument is a contra-angle: its rod leaves the head along the tool x axis. ``line1`` is
+the rod's axis at the target, starting ``r`` out along tool x; ``line2`` the same line
+``d12`` (the implant length) back toward the hole, where the rod ends up once the implant
+is in: feeding sweeps the rod from one to the other (eq. 19).
+
+Safety of a line (eq. 13) samples the model where the line crosses each slice (``m``
+points) and at its start ``T``; eq. 14 weighs the square roots of both lines' values and
+PSO (eq. 20, :mod:`oralnav.control.pso`) minimises it over ``d_T`` and ``theta_T``.
+Eqs. 21 and 22 are the paper's linear and squared variants, kept to chart their failures.
+
+Two choices differ from the paper's text, and both are charted (``oralnav bench planning``):
+
+- The paper computes line2 on the *unshrunk* model ("line2 is not a rod"). But line2 is
+  where the rod is when the implant is home, so it needs the rod's clearance as much as
+  line1 does; and only the symmetric treatment gives the paper's own cylinder answer
+  (Table 2: d_T = 65.5 mm; line1 shrunk and line2 not gives 62.5 mm). ``shrink_line2``
+  defaults to True.
+- Eq. 22 squares ``f_safe``, which would score a collision (f < 0) like clearance. The
+  variant here keeps the sign, ``sgn(f) f^2``, so it still fails only as the paper says.
+
+Objective values use distances in millimetres, as the paper's do (its Fig. 17 optimum is
+-2.611), so they compare with its figures; every other length here is in metres.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import PlanningError
+from .fpsm import FPSM
+from .pso import PSOSettings, minimize_pso
+
+#: Objective equations of the paper: 14 (adopted), 21 (linear), 22 (squared).
+EQUATIONS = (14, 21, 22)
+
+
+@dataclass(frozen=True)
+class Hole:
+    """The implant hole in the Center frame: ``position`` (m) and ``axis`` (unit, into
+    the cavity)."""
+
+    position: np.ndarray
+    axis: np.ndarray
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.position, dtype=float).reshape(-1)
+        a = np.asarray(self.axis, dtype=float).reshape(-1)
+        if p.shape != (3,) or a.shape != (3,) or not (np.all(np.isfinite(p))
+                                                      and np.all(np.isfinite(a))):
+            raise PlanningError("hole position and axis must be finite 3-vectors")
+        n = float(np.linalg.norm(a))
+        if n < 1e-9:
+            raise PlanningError("hole axis is zero")
+        a = a / n
+        if math.hypot(a[1], a[2]) < 1e-9:
+            raise PlanningError("hole axis is parallel to the Center x axis: eq. 16 defines no "
+                                "hole x axis for it")
+        object.__setattr__(self, "position", p)
+        object.__setattr__(self, "axis", a)
+
+
+def hole_frame(hole: Hole) -> np.ndarray:
+    """``T_C_hole`` (eqs. 15-17): z along the hole axis, x in the Center YZ plane with a
+    non-negative z component. Eq. 16 divides by ``D_hz^(y)``; for ``D_hz^(y) = 0`` its
+    limit is taken, ``x = (0, -sgn(D_hz^(z)), 0)``."""
+    dz = hole.axis
+    den = math.hypot(dz[1], dz[2])
+    sy = 1.0 if dz[1] >= 0 else -1.0
+    dx = np.array([0.0, -sy * dz[2] / den, abs(dz[1]) / den])
+    T = np.eye(4)
+    T[:3, 0] = dx
+    T[:3, 1] = np.cross(dz, dx)
+    T[:3, 2] = dz
+    T[:3, 3] = hole.position
+    return T
+
+
+def tool_pose(T_ch: np.ndarray, d_T: float, theta_T: float) -> np.ndarray:
+    """``T_C_tool = T_C_hole @ T_hole_tool`` (eq. 18)."""
+    c, s = math.cos(theta_T), math.sin(theta_T)
+    T_ht = np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, d_T], [0, 0, 0, 1.0]])
+    return T_ch @ T_ht
+
+
+def feed_lines(T_ch: np.ndarray, d_T: np.ndarray, theta_T: np.ndarray, rod_radius: float,
+               implant_length: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eq. 19 for K placements at once: start points ``P1``, ``P2`` (K, 3) and the common
+    unit direction ``D`` (K, 3), Center frame, metres."""
+    d_T = np.asarray(d_T, dtype=float).reshape(-1)
+    th = np.asarray(theta_T, dtype=float).reshape(-1)
+    R = T_ch[:3, :3]
+    t = T_ch[:3, 3]
+    x_tool = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], axis=1) @ R.T
+    base = t + d_T[:, None] * R[:, 2]
+    P1 = base + rod_radius * x_tool
+    P2 = P1 - implant_length * R[:, 2]
+    return P1, P2, x_tool
+
+
+def line_safe_distances(model: FPSM, P: np.ndarray, D: np.ndarray,
+                        shrink: float | np.ndarray = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Safe distances (m) along K lines starting at ``P`` (K, 3) in direction ``D``:
+    column 0 is the start ``T`` (eq. 11), columns 1..M the crossings ``Q`` with each slice
+    ahead of the start (eq. 10), NaN where a line does not cross that slice. ``shrink``
+    (m, scalar or per line) is eq. 12's rod radius. Returns the (K, M + 1) distances and
+    the crossing counts ``m`` (K,).
+
+    All points of all lines go through one vectorised model query: this is the inner loop
+    of the placement search.
+    """
+    P = np.asarray(P, dtype=float).reshape(-1, 3)
+    D = np.asarray(D, dtype=float).reshape(-1, 3)
+    z = model.z
+    K, M = P.shape[0], z.size
+    shrink = np.broadcast_to(np.asarray(shrink, dtype=float), (K,))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (z[None, :] - P[:, 2:3]) / D[:, 2:3]
+    ok = np.isfinite(t) & (t > 0)
+    t = np.where(ok, t, 0.0)
+    # the start: its two neighbouring slices (eq. 11); the crossings: their own slice.
+    # Every (line, slice) pair is queried, crossing or not, and masked afterwards: one
+    # dense numpy pass is cheaper than gathering the crossings.
+    zc = np.clip(P[:, 2], z[0], z[-1])
+    j0 = np.clip(np.searchsorted(z, zc, side="right") - 1, 0, M - 2)
+    sl = np.concatenate([j0, j0 + 1, np.tile(np.arange(M), K)])
+    Q = P[:, None, :2] + t[..., None] * D[:, None, :2]
+    xy = np.concatenate([P[:, :2], P[:, :2], Q.reshape(-1, 2)])
+    sh = np.concatenate([shrink, shrink, np.repeat(shrink, M)])
+    d = model.slice_safe_distance(sl, xy, sh)
+    d1, d2 = d[:K], d[K:2 * K]
+    w = (zc - z[j0]) / (z[j0 + 1] - z[j0])
+    dT = d1 + (d2 - d1) * w
+    beyond = np.abs(P[:, 2] - zc)      # outside the model: never positive (FPSM.safe_distance)
+    dT = np.where(beyond > 0, np.minimum(dT, 0.0) - beyond, dT)
+    out = np.empty((K, M + 1))
+    out[:, 0] = dT
+    out[:, 1:] = np.where(ok, d[2 * K:].reshape(K, M), np.nan)
+    return out, ok.sum(axis=1)
+
+
+def f_safe(d: np.ndarray, lambda_avg: float = 0.5, lambda_min: float = 0.5) -> np.ndarray:
+    """Eq. 13 on the (K, m + 1) distances of :func:`line_safe_distances` (NaN ignored):
+    the weighted mean plus the weighted minimum while the line is clear, only the minimum
+    term once it collides (d_min <= 0)."""
+    valid = ~np.isnan(d)
+    dmin = np.min(np.where(valid, d, np.inf), axis=1)
+    avg = np.sum(np.where(valid, d, 0.0), axis=1) / valid.sum(axis=1)
+    return np.where(dmin > 0, lambda_avg * avg + lambda_min * dmin, lambda_min * dmin)
+
+
+@dataclass(frozen=True)
+class PlacementSettings:
+    """The instrument, the objective and the search box. Lengths m, angles rad."""
+
+    rod_radius: float = 0.006
+    implant_length: float = 0.031
+    lambda_avg: float = 0.5
+    lambda_min: float = 0.5
+    equation: int = 14
+    shrink_line2: bool = True
+    d_range: tuple[float, float] = (0.0, 0.12)
+    theta_range: tuple[float, float] = (-math.pi / 2, math.pi / 2)
+    max_hole_depth: float = 0.02   # a hole farther than this outside the model is refused
+    pso: PSOSettings = field(default_factory=PSOSettings)
+
+    def __post_init__(self) -> None:
+        if self.equation not in EQUATIONS:
+            raise PlanningError(f"objective equation must be one of {EQUATIONS}, "
+                                f"got {self.equation}")
+        if not (self.rod_radius >= 0 and self.implant_length > 0):
+            raise PlanningError(f"rod radius must be >= 0 and implant length > 0, got "
+                                f"{self.rod_radius} m and {self.implant_length} m")
+        if not (self.lambda_avg >= 0 and self.lambda_min > 0):
+            raise PlanningError("lambda_avg must be >= 0 and lambda_min > 0")
+        for name in ("d_range", "theta_range"):
+            lo, hi = getattr(self, name)
+            if not hi > lo:
+                raise PlanningError(f"{name} must have upper > lower, got {lo}..{hi}")
+
+
+def _signed_root(f: np.ndarray) -> np.ndarray:
+    return np.sign(f) * np.sqrt(np.abs(f))
+
+
+class PlacementProblem:
+    """Eq. 14 (or 21, 22) as a function of ``x = (d_T, theta_T)`` for one model and hole.
+
+    Construction checks the hole against the model (:class:`PlanningError` when it lies
+    outside). :meth:`evaluate` scores K placements at once.
+    """
+
+    def __init__(self, model: FPSM, hole: Hole, settings: PlacementSettings | None = None):
+        self.model, self.hole = model, hole
+        self.s = settings or PlacementSettings()
+        z = model.z
+        hz = hole.position[2]
+        if not z[0] <= hz <= z[-1]:
+            raise PlanningError(
+                f"the hole (z = {hz * 1e3:.1f} mm) is outside the model, whose slices span "
+                f"z = {z[0] * 1e3:.1f}..{z[-1] * 1e3:.1f} mm")
+        depth = -float(model.safe_distance(hole.position))
+        if depth > self.s.max_hole_depth:
+            raise PlanningError(
+                f"the hole lies {depth * 1e3:.1f} mm outside the model's surface (more than "
+                f"{self.s.max_hole_depth * 1e3:.1f} mm): it is not on this patient's cavity")
+        self.T_ch = hole_frame(hole)
+
+    def lines(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        return feed_lines(self.T_ch, x[:, 0], x[:, 1], self.s.rod_radius,
+                          self.s.implant_length)
+
+    def line_values(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                  np.ndarray]:
+        """``f_safe`` of line1 and line2 (m) and their crossing counts ``m1``, ``m2``."""
+        s = self.s
+        P1, P2, D = self.lines(x)
+        K = P1.shape[0]
+        shrink = np.concatenate([np.full(K, s.rod_radius),
+                                 np.full(K, s.rod_radius if s.shrink_line2 else 0.0)])
+        d, m = line_safe_distances(self.model, np.concatenate([P1, P2]),
+                                   np.concatenate([D, D]), shrink)
+        f = f_safe(d, s.lambda_avg, s.lambda_min)
+        return f[:K], f[K:], m[:K], m[K:]
+
+    def evaluate(self, x: np.ndarray) -> np.ndarray:
+        """The objective (smaller is safer) for K placements ``x`` (K, 2)."""
+        f1, f2, m1, m2 = self.line_values(x)
+        a, b = f1 * 1e3, f2 * 1e3       # the paper's millimetres
+        if self.s.equation == 14:
+            a, b = _signed_root(a), _signed_root(b)
+        elif self.s.equation == 22:
+            a, b = np.sign(a) * a * a, np.sign(b) * b * b
+        return -((m1 + 1) * a + (m2 + 1) * b) / (m1 + m2 + 2)
+
+    def grid(self, n_d: int = 121, n_theta: int = 121) -> tuple[np.ndarray, np.ndarray,
+                                                                 np.ndarray]:
+        """The objective on a dense grid over the search box: ``d`` (n_d,), ``theta``
+        (n_theta,), values (n_theta, n_d). For contour charts and the optimality check."""
+        d = np.linspace(*self.s.d_range, n_d)
+        th = np.linspace(*self.s.theta_range, n_theta)
+        D, TH = np.meshgrid(d, th)
+        vals = self.evaluate(np.stack([D.ravel(), TH.ravel()], axis=1))
+        return d, th, vals.reshape(TH.shape)
+
+
+@dataclass(frozen=True)
+class Placement:
+    """The planned feeding target. ``collision_free`` is False when no placement clears the
+    model: then ``d_T``/``theta_T`` are the least bad found and must not be used."""
+
+    d_T: float                     # m
+    theta_T: float                 # rad
+    objective: float
+    iterations: int
+    evaluations: int
+    time_ms: float
+    collision_free: bool
+    f_safe_line1: float            # m
+    f_safe_line2: float            # m
+    T_C_tool: np.ndarray           # the tool frame at the target
+    history: np.ndarray = field(repr=False)
+
+    def to_dict(self) -> dict:
+        """The ``oralnav plan place --json`` object (SI units)."""
+        return {"d_T": self.d_T, "theta_T": self.theta_T, "objective": self.objective,
+                "iterations": self.iterations, "time_ms": self.time_ms,
+                "collision_free": self.collision_free}
+
+
+def place(model: FPSM, hole: Hole, settings: PlacementSettings | None = None) -> Placement:
+    """Optimise ``(d_T, theta_T)`` by PSO on the chosen objective (eq. 14 by default)."""
+    problem = PlacementProblem(model, hole, settings)
+    s = problem.s
+    lo = np.array([s.d_range[0], s.theta_range[0]])
+    hi = np.array([s.d_range[1], s.theta_range[1]])
+    t0 = time.perf_counter()
+    res = minimize_pso(problem.evaluate, lo, hi, s.pso)
+    ms = (time.perf_counter() - t0) * 1e3
+    f1, f2, _, _ = problem.line_values(res.x[None])
+    ok = bool(f1[0] > 0 and f2[0] > 0)
+    return Placement(d_T=float(res.x[0]), theta_T=float(res.x[1]), objective=float(res.value),
+                     iterations=res.iterations, evaluations=res.evaluations, time_ms=ms,
+                     collision_free=ok, f_safe_line1=float(f1[0]), f_safe_line2=float(f2[0]),
+                     T_C_tool=tool_pose(problem.T_ch, float(res.x[0]), float(res.x[1])),
+                     history=res.history)
