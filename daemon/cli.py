@@ -8,7 +8,9 @@
     oralnav track --calibration NAME=calibration.txt [--fields FIELDS] [--body NAME=PATH ...]
                   [--tag NAME=DICT:ID:SIDE_MM ...] --replay NAME=VIDEO [--frames N] [--json]
     oralnav calibrate pivot --matrices FILE [--method M] [--json] [--out F --cell ID]
-    oralnav bench navigation|control|calibration [--quick] --out DIR
+    oralnav plan fpsm --mesh FILE --slices M --points N --out FPSM.json [--json]
+    oralnav plan place --scene FILE [--figures DIR] [--json]
+    oralnav bench navigation|control|calibration|planning [--quick] --out DIR
 
 Every ``--json`` prints exactly one JSON object on stdout; progress and logs go to stderr.
 Exit status: 0 done, 2 bad input (the message names the file and key), 1 anything else.
@@ -37,7 +39,7 @@ from oralnav.config.scene import load_scene
 from oralnav.control.errors import ControlError
 from oralnav.sim.render import RenderError, SceneRenderer
 
-from . import calibrate
+from . import calibrate, plan
 from .sheets import SheetError, render_sheet, write_png
 
 
@@ -383,6 +385,7 @@ def build_parser() -> argparse.ArgumentParser:
     tk.set_defaults(func=cmd_track)
 
     calibrate.add_parser(sub)
+    plan.add_parser(sub)
 
     bn = sub.add_parser("bench", help="benchmarks").add_subparsers(dest="cmd", required=True)
     nv = bn.add_parser("navigation", help="speed/accuracy charts of the tracker (minutes)")
