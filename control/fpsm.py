@@ -198,9 +198,11 @@ class FPSM:
         shape = np.broadcast_shapes(j.shape, th.shape)
         jj = np.broadcast_to(j, shape).reshape(-1)
         tt = np.broadcast_to(th, shape).reshape(-1)
-        return self._radius(jj, tt).reshape(shape) - shrink
+        return self.radius_at(jj, tt).reshape(shape) - shrink
 
-    def _radius(self, j: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    def radius_at(self, j: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """``rho_j(theta)`` (m) for flat, equally long integer ``j`` and ``theta`` (rad):
+        :meth:`radius` without the broadcasting, for hot loops."""
         # one gather of the segment's power coefficients, then Horner: the hot path of
         # every collision query, so no per-call basis assembly
         n = self.points

@@ -136,7 +136,7 @@ def line_safe_distances(model: FPSM, P: np.ndarray, D: np.ndarray,
     Q = P[:, None, :2] + t[..., None] * D[:, None, :2]
     xy = np.concatenate([P[:, :2], P[:, :2], Q.reshape(-1, 2)])
     sh = np.concatenate([shrink, shrink, np.repeat(shrink, M)])
-    d = model.slice_safe_distance(sl, xy, sh)
+    d = model.radius_at(sl, np.arctan2(xy[:, 1], xy[:, 0])) - sh - np.hypot(xy[:, 0], xy[:, 1])
     d1, d2 = d[:K], d[K:2 * K]
     w = (zc - z[j0]) / (z[j0 + 1] - z[j0])
     dT = d1 + (d2 - d1) * w
