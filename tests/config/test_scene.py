@@ -20,8 +20,10 @@ from oralnav.sim.scene import Scene
 from .helpers import edit, expect_config_error, write_file
 
 CONFIG = Path(__file__).resolve().parents[2] / "config"
-# every example is a scene file except the cell file, which names two of them
-EXAMPLES = sorted(p for p in (CONFIG / "examples").glob("*.toml") if p.name != "sim_cell.toml")
+# every example is a scene file except the cell file, which names two of them, and the
+# planning cases (``*_case.toml``, tests/config/test_planning.py)
+EXAMPLES = sorted(p for p in (CONFIG / "examples").glob("*.toml")
+                  if p.name != "sim_cell.toml" and not p.stem.endswith("_case"))
 STEREO = CONFIG / "rigs" / "stereo.toml"
 CELL = CONFIG / "fields" / "cell.toml"
 
