@@ -40,7 +40,7 @@ Pos = Annotated[Float, Field(gt=0)]
 class ModelEntry(Strict):
     """``[model]``: what stands for the oral cavity."""
 
-    kind: Literal["cylinder", "fpsm", "mesh"]
+    kind: Literal["cylinder", "fpsm", "mesh", "oral_cavity"]
     # cylinder
     radius_mm: Pos | None = None
     z_range_mm: Range | None = None          # cylinder, or a mesh's slice range
@@ -52,6 +52,12 @@ class ModelEntry(Strict):
     samples: Annotated[Int, Field(ge=3, le=10000)] = 150
     method: str = "slp"
     margin_mm: Annotated[Float, Field(ge=0, le=5)] = 0.0
+    # oral_cavity: the parametric mouth of oralnav.sim.oral_cavity (tests and demos)
+    width_mm: Annotated[Float, Field(ge=20, le=300)] = 55.0
+    height_mm: Annotated[Float, Field(ge=20, le=300)] = 45.0
+    depth_mm: Annotated[Float, Field(ge=20, le=300)] = 90.0
+    teeth: bool = True
+    missing_teeth: tuple[str, ...] = ()
 
     @model_validator(mode="after")
     def _kind_keys(self) -> ModelEntry:
@@ -60,6 +66,9 @@ class ModelEntry(Strict):
                 raise ValueError("a cylinder model needs radius_mm and z_range_mm")
             if self.file is not None:
                 raise ValueError("a cylinder model takes no file")
+        elif self.kind == "oral_cavity":
+            if self.file is not None:
+                raise ValueError("an oral_cavity model is generated: it takes no file")
         elif self.file is None:
             raise ValueError(f"a {self.kind} model needs file")
         if self.z_range_mm is not None and not self.z_range_mm[1] > self.z_range_mm[0]:
@@ -155,16 +164,24 @@ def load_planning_scene(path: str | Path) -> PlanningScene:
         model = load_fpsm(target)[0]
         source = str(target)
     else:
-        from .mesh import load_mesh
+        if m.kind == "mesh":
+            from .mesh import load_mesh
 
-        target = resolve_file(path, "model.file", m.file)
-        loaded = load_mesh(target, units=m.units)
-        mesh = loaded.mesh
+            target = resolve_file(path, "model.file", m.file)
+            mesh = load_mesh(target, units=m.units).mesh
+            source = str(target)
+        else:
+            from oralnav.sim.oral_cavity import oral_cavity_mesh
+
+            mesh = build(path, "model", lambda: oral_cavity_mesh(
+                m.width_mm * 1e-3, m.height_mm * 1e-3, m.depth_mm * 1e-3, teeth=m.teeth,
+                missing=tuple(m.missing_teeth)))
+            source = (f"parametric oral cavity {m.width_mm:g} x {m.height_mm:g} x "
+                      f"{m.depth_mm:g} mm")
         z = None if m.z_range_mm is None else (m.z_range_mm[0] * 1e-3, m.z_range_mm[1] * 1e-3)
         model, report = build(path, "model", lambda: build_fpsm(
             mesh, m.slices, m.points, m.samples, z,
             FitSettings(method=m.method, margin=m.margin_mm * 1e-3)))
-        source = str(target)
     o, s, t, p = f.objective, f.search, f.tool, f.pso
     settings = build(path, "pso", lambda: PlacementSettings(
         rod_radius=t.rod_radius_mm * 1e-3, implant_length=t.implant_length_mm * 1e-3,

@@ -113,39 +113,42 @@ def line_safe_distances(model: FPSM, P: np.ndarray, D: np.ndarray,
     column 0 is the start ``T`` (eq. 11), columns 1..M the crossings ``Q`` with each slice
     ahead of the start (eq. 10), NaN where a line does not cross that slice. ``shrink``
     (m, scalar or per line) is eq. 12's rod radius. Returns the (K, M + 1) distances and
-    the crossing counts ``m`` (K,).
-
-    All points of all lines go through one vectorised model query: this is the inner loop
-    of the placement search.
-    """
+    the crossing counts ``m`` (K,)."""
     P = np.asarray(P, dtype=float).reshape(-1, 3)
     D = np.asarray(D, dtype=float).reshape(-1, 3)
+    shrink = np.broadcast_to(np.asarray(shrink, dtype=float), (P.shape[0],))
+    dT, dQ, ok = _line_parts(model, P, D, shrink)
+    out = np.concatenate([dT[:, None], np.where(ok, dQ, np.nan)], axis=1)
+    return out, ok.sum(axis=1)
+
+
+def _line_parts(model: FPSM, P: np.ndarray, D: np.ndarray,
+                shrink: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The start's distance (K,), every slice's distance (K, M) and which slices the line
+    crosses ahead of its start (K, M). All points of all lines go through one model
+    query: this is the inner loop of the placement search."""
     z = model.z
     K, M = P.shape[0], z.size
-    shrink = np.broadcast_to(np.asarray(shrink, dtype=float), (K,))
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = (z[None, :] - P[:, 2:3]) / D[:, 2:3]
-    ok = np.isfinite(t) & (t > 0)
-    t = np.where(ok, t, 0.0)
+        t = (z - P[:, 2:3]) / D[:, 2:3]
+    ok = t > 0                          # NaN and -inf compare False
+    ok &= np.isfinite(t)
+    t[~ok] = 0.0
     # the start: its two neighbouring slices (eq. 11); the crossings: their own slice.
     # Every (line, slice) pair is queried, crossing or not, and masked afterwards: one
     # dense numpy pass is cheaper than gathering the crossings.
     zc = np.clip(P[:, 2], z[0], z[-1])
     j0 = np.clip(np.searchsorted(z, zc, side="right") - 1, 0, M - 2)
     sl = np.concatenate([j0, j0 + 1, np.tile(np.arange(M), K)])
-    Q = P[:, None, :2] + t[..., None] * D[:, None, :2]
-    xy = np.concatenate([P[:, :2], P[:, :2], Q.reshape(-1, 2)])
-    sh = np.concatenate([shrink, shrink, np.repeat(shrink, M)])
-    d = model.radius_at(sl, np.arctan2(xy[:, 1], xy[:, 0])) - sh - np.hypot(xy[:, 0], xy[:, 1])
+    x = np.concatenate([P[:, 0], P[:, 0], (P[:, 0:1] + t * D[:, 0:1]).ravel()])
+    y = np.concatenate([P[:, 1], P[:, 1], (P[:, 1:2] + t * D[:, 1:2]).ravel()])
+    d = model.radius_at(sl, np.arctan2(y, x)) - np.hypot(x, y)
     d1, d2 = d[:K], d[K:2 * K]
     w = (zc - z[j0]) / (z[j0 + 1] - z[j0])
-    dT = d1 + (d2 - d1) * w
+    dT = d1 + (d2 - d1) * w - shrink
     beyond = np.abs(P[:, 2] - zc)      # outside the model: never positive (FPSM.safe_distance)
     dT = np.where(beyond > 0, np.minimum(dT, 0.0) - beyond, dT)
-    out = np.empty((K, M + 1))
-    out[:, 0] = dT
-    out[:, 1:] = np.where(ok, d[2 * K:].reshape(K, M), np.nan)
-    return out, ok.sum(axis=1)
+    return dT, d[2 * K:].reshape(K, M) - shrink[:, None], ok
 
 
 def f_safe(d: np.ndarray, lambda_avg: float = 0.5, lambda_min: float = 0.5) -> np.ndarray:
@@ -228,9 +231,13 @@ class PlacementProblem:
         K = P1.shape[0]
         shrink = np.concatenate([np.full(K, s.rod_radius),
                                  np.full(K, s.rod_radius if s.shrink_line2 else 0.0)])
-        d, m = line_safe_distances(self.model, np.concatenate([P1, P2]),
-                                   np.concatenate([D, D]), shrink)
-        f = f_safe(d, s.lambda_avg, s.lambda_min)
+        dT, dQ, ok = _line_parts(self.model, np.concatenate([P1, P2]), np.concatenate([D, D]),
+                                 shrink)
+        # eq. 13 without NaN bookkeeping: the start always counts, crossings where ok
+        m = ok.sum(axis=1)
+        dmin = np.minimum(dT, np.min(np.where(ok, dQ, np.inf), axis=1))
+        avg = (dT + np.sum(np.where(ok, dQ, 0.0), axis=1)) / (m + 1)
+        f = np.where(dmin > 0, s.lambda_avg * avg + s.lambda_min * dmin, s.lambda_min * dmin)
         return f[:K], f[K:], m[:K], m[K:]
 
     def evaluate(self, x: np.ndarray) -> np.ndarray:

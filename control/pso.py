@@ -30,7 +30,7 @@ class PSOSettings:
     patience: int = 40
     max_iterations: int = 1000
     v_max: float = 0.2             # fraction of the box size per iteration
-    tolerance: float = 1e-12       # an improvement smaller than this does not count
+    tolerance: float = 1e-8        # an improvement smaller than this does not count
     seed: int = 0
 
     def __post_init__(self) -> None:

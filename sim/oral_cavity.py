@@ -192,7 +192,8 @@ def _tube(width: float, height: float, depth: float, n_theta: int, n_z: int,
 
 def oral_cavity_mesh(width: float = 0.055, height: float = 0.045, depth: float = 0.09,
                      teeth: bool = True, closed_front: bool = False,
-                     resolution: float = 1.0) -> trimesh.Trimesh:
+                     resolution: float = 1.0, missing: tuple[str, ...] = ()
+                     ) -> trimesh.Trimesh:
     """A plausible oral cavity held open by an opener, as a triangle mesh in the Center
     frame (see the module docstring), metres.
 
@@ -205,6 +206,8 @@ def oral_cavity_mesh(width: float = 0.055, height: float = 0.045, depth: float =
         closed_front: cap the opening too, so the whole mesh is watertight; by default the
             front is open (one boundary loop at z = depth), as a scan of an open mouth is.
         resolution: scales the face count (about 29 000 faces at 1.0, linear in it).
+        missing: names of crowns to leave out (:func:`dental_arches`, e.g.
+            ``"lower_left_molar1"``): the gap where an implant goes.
 
     The wall is a tube whose vertices lie exactly on :func:`wall_radius`, capped at the
     back; the bounding box is ``[-width/2, width/2] x [-height/2, height/2] x [0, depth]``.
@@ -223,7 +226,14 @@ def oral_cavity_mesh(width: float = 0.055, height: float = 0.045, depth: float =
     parts_v, parts_f, offset = [verts], [faces], len(verts)
     if teeth:
         count = max(round(10.0 * np.sqrt(resolution)), 4)  # 320 faces a crown at 1.0
-        for tooth in dental_arches(width, height, depth):
+        crowns = dental_arches(width, height, depth)
+        unknown = set(missing) - {t.name for t in crowns}
+        if unknown:
+            raise ValueError(f"no tooth named {sorted(unknown)}; the crowns are "
+                             f"{', '.join(t.name for t in crowns)}")
+        for tooth in crowns:
+            if tooth.name in missing:
+                continue
             v, f = _rounded_box(np.array(tooth.center), np.array(tooth.half_extents), count)
             parts_v.append(v)
             parts_f.append(f + offset)
