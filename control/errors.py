@@ -29,3 +29,8 @@ class CalibrationError(ControlError, ValueError):
 class PlanningError(ControlError, ValueError):
     """A planning input was refused: a mesh the surrogate model cannot fit (empty, not
     enclosing a slice origin), a hole outside the model, or bad optimiser settings."""
+
+
+class AdmittanceError(ControlError, ValueError):
+    """Bad admittance settings or input (non-finite force, bad ``dt``, a start position
+    outside the fixture); the message names the value. The state is left untouched."""

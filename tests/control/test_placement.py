@@ -111,7 +111,7 @@ def test_pso_reaches_the_grid_optimum():
     """PSO's answer is at least as good as a dense grid's best."""
     prob = PlacementProblem(CYL, HOLE, PlacementSettings())
     d, th, F = prob.grid(241, 181)
-    assert _place().objective <= F.min() + 1e-9
+    assert _place().objective <= F.min() + 1e-8   # within the stopping tolerance
 
 
 def test_reproducible_with_a_seed():
