@@ -15,7 +15,10 @@ Per period the loop (1) reads the arm and wrist state; (2) trips the latched sto
 request from the daemon, a disconnected or protective-stopped arm, a silent or faulted
 driver, a stale pose while moving, or repeated deadline misses; (3) when stopped, commands
 nothing at all; otherwise steps the servo setpoint toward the goal with the speed limits
-and sends it, or, when holding, only kicks the arm's watchdog.
+and sends it, or, when holding, only kicks the arm's watchdog. In GUIDE mode the setpoint
+comes from the admittance inside the virtual fixture (``control/guided_motion.py``), and
+the rod's collision alarm on the surrogate model, or a TCP outside the fixture at the
+start, trips the stop too.
 """
 
 from __future__ import annotations
@@ -36,8 +39,10 @@ from .shm import SharedRecord, decode_reason, encode_reason
 
 log = logging.getLogger(__name__)
 
-#: Control modes the daemon may ask for.
-HOLD, MOVE = 0, 1
+#: Control modes the daemon may ask for. GUIDE: admittance inside the planned virtual
+#: fixture (``ControlLoop.set_guide``), the operator's push measured by the arm's force
+#: sensor; the goal is unused and ``T_B_F`` places the patient's model frame.
+HOLD, MOVE, GUIDE = 0, 1, 2
 
 #: A period off its nominal length by more than this counts as a miss in the status.
 MISS_S = 0.001
@@ -54,6 +59,7 @@ NAV_DTYPE = np.dtype([
     ("near_valid", "?"),           # near_point is known: slow down near it
     ("wrist_goal", "f8", (4,)),    # roll, pitch, yaw, jaw (rad)
     ("wrist_valid", "?"),
+    ("T_B_F", "f8", (4, 4)),       # GUIDE: the surrogate model's frame in the base, m
 ])
 
 #: The daemon -> loop commands. Counters, so a request is never lost between two reads.
@@ -152,7 +158,13 @@ class ControlLoop:
         self._t_motion = 0.0
         self._stop_time = 0.0
         self._stop_reason = ""
+        self._guide: Any = None            # GuidedMotion for GUIDE mode (set_guide)
+        self.last_guide: Any = None        # the last GuideStep, for status and tests
 
+    def set_guide(self, guide: Any) -> None:
+        """Install the plan's :class:`~oralnav.control.guided_motion.GuidedMotion` (or None).
+        It starts from the measured TCP on the first GUIDE period."""
+        self._guide = guide
     # -- one period ------------------------------------------------------------------
     def step(self, now: float, lateness: float = 0.0) -> None:
         """One period at ``now`` (s, loop clock), which started ``lateness`` s after its
@@ -208,7 +220,9 @@ class ControlLoop:
             outside = self._workspace_reason("goal", np.array(nav["goal"]))
         if outside is not None:  # never steer toward, or stay moving, outside the box
             return outside
-        if int(nav["mode"]) == MOVE:  # a stale pose matters only while it steers a move
+        if int(nav["mode"]) == GUIDE and self._guide is None:
+            return "guided motion requested without a plan"
+        if int(nav["mode"]) in (MOVE, GUIDE):  # a stale pose matters only while it steers
             self._stale.fresh("goal", float(nav["t_pose"]))
             trips += self._stale.check(now)
         else:
@@ -250,13 +264,21 @@ class ControlLoop:
         s = self.s
         if self._setpoint is None:
             self._setpoint = np.array(arm.T_B_tcp, dtype=float)
-        if int(nav["mode"]) != MOVE:
-            self._setpoint = np.array(arm.T_B_tcp, dtype=float)
-            self.arm.kick()
-            return
+        mode = int(nav["mode"])
+        if mode == GUIDE:
+            goal = self._guide_goal(now, arm, nav)
+            if goal is None:
+                return
+        else:
+            if self._guide is not None and self._guide.started:
+                self._guide = type(self._guide)(self._guide.plan)  # restart on re-entry
+            if mode != MOVE:
+                self._setpoint = np.array(arm.T_B_tcp, dtype=float)
+                self.arm.kick()
+                return
+            goal = np.array(nav["goal"])
         near = np.array(nav["near_point"]) if bool(nav["near_valid"]) else None
-        self._setpoint = self.limiter.step(self._setpoint, np.array(nav["goal"]), s.period,
-                                           near=near)
+        self._setpoint = self.limiter.step(self._setpoint, goal, s.period, near=near)
         self.arm.servo(self._setpoint, s.period)
         if self.effector is not None and bool(nav["wrist_valid"]):
             q = np.array(self.effector.state().joints, dtype=float)
@@ -265,6 +287,25 @@ class ControlLoop:
             self.effector.command(q + step)
         self._motion += 1
         self._t_motion = now
+
+    def _guide_goal(self, now: float, arm: Any, nav: np.void) -> np.ndarray | None:
+        """The admittance's setpoint for this period, or None after latching the stop (a
+        TCP outside the fixture at the start, bad sensor data, or the rod alarm)."""
+        from oralnav.control.errors import ControlError
+
+        T_B_F = np.array(nav["T_B_F"])
+        try:
+            if not self._guide.started:
+                self._guide.start(arm.T_B_tcp, T_B_F)
+            step = self._guide.step(arm.tcp_force, T_B_F, arm.T_B_tcp, self.s.period)
+        except ControlError as exc:
+            self._latch(now, f"guided motion: {exc}")
+            return None
+        self.last_guide = step
+        if step.alarm is not None:
+            self._latch(now, step.alarm)
+            return None
+        return step.setpoint
 
     def _publish(self, now: float, arm: Any, wrist: Any, err: float) -> None:
         self.status.write(

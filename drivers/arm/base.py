@@ -15,7 +15,7 @@ from __future__ import annotations
 import abc
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -60,6 +60,9 @@ class ArmState:
         protective_stop: the arm is in a protective stop (must be cleared at the arm).
         emergency_stop: the arm's own e-stop chain is open.
         ready: the arm accepts motion commands (control program running, no stop active).
+        tcp_force: (6,) wrench the TCP force sensor measures ``[fx, fy, fz, tx, ty, tz]`` in
+            the base frame, N and N m (read-only array; zeros for an arm without one). The
+            operator's push in guided (admittance) motion.
     """
 
     timestamp: float
@@ -69,10 +72,12 @@ class ArmState:
     protective_stop: bool
     emergency_stop: bool
     ready: bool
+    tcp_force: np.ndarray = field(default_factory=lambda: np.zeros(6))
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "T_B_tcp", _readonly(self.T_B_tcp))
         object.__setattr__(self, "tcp_speed", _readonly(self.tcp_speed))
+        object.__setattr__(self, "tcp_force", _readonly(self.tcp_force))
 
 
 def check_pose(T: object, what: str = "T_B_tcp") -> np.ndarray:

@@ -159,6 +159,7 @@ class SimArm(Arm):
         self._snap_time = float(self.clock.now())
         self._snap_T = home_T
         self._snap_twist = np.zeros(6)
+        self._wrench = np.zeros(6)  # what the simulated force sensor reads (apply_wrench)
         self._log: collections.deque[CommandRecord] = collections.deque(maxlen=log_size)
         self.watchdog_trips = 0  # times the watchdog stopped the arm
 
@@ -192,6 +193,7 @@ class SimArm(Arm):
                 protective_stop=self._protective,
                 emergency_stop=self._estop,
                 ready=self._refusal() is None,
+                tcp_force=self._wrench,
             )
 
     @property
@@ -332,6 +334,19 @@ class SimArm(Arm):
             self._mode = "hold"
 
     # -- fault injection (tests, simulated cell) ----------------------------------------------
+
+    def apply_wrench(self, wrench: np.ndarray) -> None:
+        """Set what the simulated TCP force sensor reads (base frame, N and N m): the
+        operator's push, e.g. from :class:`oralnav.sim.hand.ScriptedHand`. It does not
+        move the arm by itself; the admittance controller turns it into motion."""
+        w = np.asarray(wrench, dtype=float).reshape(-1)
+        if w.size == 3:
+            w = np.concatenate([w, np.zeros(3)])
+        if w.shape != (6,) or not np.all(np.isfinite(w)):
+            raise ArmCommandError(f"arm {self.name!r}: a wrench is 3 or 6 finite numbers, "
+                                  f"got {wrench!r}")
+        with self._lock:
+            self._wrench = w
 
     def inject_protective_stop(self) -> None:
         """The arm enters a protective stop: it brakes, and refuses motion until cleared."""
