@@ -59,7 +59,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .errors import AdmittanceError
-from .virtual_fixture import VirtualFixture
+from .virtual_fixture import VirtualFixture, finite_number
 
 __all__ = ["AdmittanceError", "AdmittanceSettings", "AdmittanceState",
            "AdmittanceController", "ISO_10218_REDUCED_SPEED"]
@@ -75,14 +75,7 @@ _RECLAMPS = 3
 
 
 def _setting(x: object, what: str, *, positive: bool = True) -> float:
-    if isinstance(x, bool):
-        raise AdmittanceError(f"{what} must be a number, got {x!r}")
-    try:
-        v = float(x)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise AdmittanceError(f"{what} must be a number, got {x!r}") from None
-    if not math.isfinite(v):
-        raise AdmittanceError(f"{what} must be finite, got {x!r}")
+    v = finite_number(x, what, AdmittanceError)
     if positive and v <= 0.0:
         raise AdmittanceError(f"{what} must be positive, got {x!r}")
     if not positive and v < 0.0:

@@ -62,16 +62,20 @@ _UNIT_TOL = 1e-9
 _TINY = 1e-15
 
 
-def _number(x: object, what: str) -> float:
+def finite_number(x: object, what: str, error: type[Exception] = PlanningError) -> float:
+    """``x`` as a finite float (bools refused), or ``error`` naming ``what``."""
     if isinstance(x, bool):
-        raise PlanningError(f"{what} must be a number, got {x!r}")
+        raise error(f"{what} must be a number, got {x!r}")
     try:
         v = float(x)  # type: ignore[arg-type]
     except (TypeError, ValueError):
-        raise PlanningError(f"{what} must be a number, got {x!r}") from None
+        raise error(f"{what} must be a number, got {x!r}") from None
     if not math.isfinite(v):
-        raise PlanningError(f"{what} must be finite, got {x!r}")
+        raise error(f"{what} must be finite, got {x!r}")
     return v
+
+
+_number = finite_number
 
 
 def _positive(x: object, what: str) -> float:
