@@ -316,9 +316,10 @@ def _track_replay(args: argparse.Namespace, tracker, sources: dict[str, Path]) -
 
 # -- oralnav bench --------------------------------------------------------------------
 def cmd_bench(args: argparse.Namespace) -> int:
-    from oralnav.bench import calibration, control, navigation
+    from oralnav.bench import calibration, control, navigation, planning
 
-    bench = {"navigation": navigation, "control": control, "calibration": calibration}[args.cmd]
+    bench = {"navigation": navigation, "control": control, "calibration": calibration,
+             "planning": planning}[args.cmd]
     bench.main(Path(args.out), quick=args.quick)
     return 0
 
@@ -402,6 +403,13 @@ def build_parser() -> argparse.ArgumentParser:
     cb.add_argument("--quick", action="store_true", help="8 trials a point instead of 30")
     cb.add_argument("--out", required=True, help="folder for calibration.json and its chart")
     cb.set_defaults(func=cmd_bench)
+    pl = bn.add_parser("planning", help="surrogate-model fit, its answers against the exact "
+                                        "mesh and the placement search, next to the paper's "
+                                        "figures (about a minute)")
+    pl.add_argument("--quick", action="store_true", help="fewer repeats, rods and seeds "
+                                                         "(about 30 s)")
+    pl.add_argument("--out", required=True, help="folder for planning.json and its charts")
+    pl.set_defaults(func=cmd_bench)
     return p
 
 
