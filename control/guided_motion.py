@@ -108,6 +108,10 @@ class GuidedMotion:
         self._started = True
         return st
 
+    def finish(self) -> None:
+        """End this insertion: the next :meth:`start` begins afresh from the measured TCP."""
+        self._started = False
+
     def rod_distance(self, T_F_tcp: np.ndarray) -> float:
         """Smallest safe distance (m) of the rod at the TCP pose ``T_F_tcp`` (the rod along
         the TCP's x axis from ``r`` off its origin, eq. 19), shrunk by the rod radius."""

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from oralnav.control.errors import ControlError
 from oralnav.safety.limits import SpeedLimiter, WorkspaceBox
 from oralnav.safety.watchdogs import DeadlineWatchdog, DriverSilenceWatchdog, StalePoseWatchdog
 
@@ -270,8 +271,8 @@ class ControlLoop:
             if goal is None:
                 return
         else:
-            if self._guide is not None and self._guide.started:
-                self._guide = type(self._guide)(self._guide.plan)  # restart on re-entry
+            if self._guide is not None:
+                self._guide.finish()    # the next GUIDE period starts from the measured TCP
             if mode != MOVE:
                 self._setpoint = np.array(arm.T_B_tcp, dtype=float)
                 self.arm.kick()
@@ -291,8 +292,6 @@ class ControlLoop:
     def _guide_goal(self, now: float, arm: Any, nav: np.void) -> np.ndarray | None:
         """The admittance's setpoint for this period, or None after latching the stop (a
         TCP outside the fixture at the start, bad sensor data, or the rod alarm)."""
-        from oralnav.control.errors import ControlError
-
         T_B_F = np.array(nav["T_B_F"])
         try:
             if not self._guide.started:
