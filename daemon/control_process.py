@@ -204,7 +204,10 @@ class ControlProcess(ControlPort):
                                  name="oralnavd-control", daemon=True)
         self._proc.start()
         deadline = time.monotonic() + timeout
-        while not ready.is_set():
+        # "runs" means its first period has published a status: the child signals ready
+        # just before its first period, and a supervisor reading the status record before
+        # that would see a disconnected arm
+        while not (ready.is_set() and int(self.status.read()["periods"]) > 0):
             if not self._proc.is_alive():
                 raise RuntimeError(f"control process exited during start "
                                    f"(exit code {self._proc.exitcode})")
