@@ -52,6 +52,10 @@ class ModelEntry(Strict):
     samples: Annotated[Int, Field(ge=3, le=10000)] = 150
     method: str = "slp"
     margin_mm: Annotated[Float, Field(ge=0, le=5)] = 0.0
+    # envelope: fit each curve to the nearest tissue over its slice's cell, which lets the
+    # placement be certified against the mesh; plane: the paper's plane cuts
+    boundary: Literal["envelope", "plane"] = "envelope"
+    reach_mm: Annotated[Float, Field(ge=0, le=100)] = 10.0
     # oral_cavity: the parametric mouth of oralnav.sim.oral_cavity (tests and demos)
     width_mm: Annotated[Float, Field(ge=20, le=300)] = 55.0
     height_mm: Annotated[Float, Field(ge=20, le=300)] = 45.0
@@ -86,6 +90,7 @@ class HoleEntry(Strict):
 class ToolEntry(Strict):
     rod_radius_mm: Annotated[Float, Field(ge=0, le=50)] = 6.0
     implant_length_mm: Annotated[Float, Field(gt=0, le=100)] = 31.0
+    min_clearance_mm: Annotated[Float, Field(ge=0, le=20)] = 0.5
 
 
 class ObjectiveEntry(Strict):
@@ -181,10 +186,12 @@ def load_planning_scene(path: str | Path) -> PlanningScene:
         z = None if m.z_range_mm is None else (m.z_range_mm[0] * 1e-3, m.z_range_mm[1] * 1e-3)
         model, report = build(path, "model", lambda: build_fpsm(
             mesh, m.slices, m.points, m.samples, z,
-            FitSettings(method=m.method, margin=m.margin_mm * 1e-3)))
+            FitSettings(method=m.method, margin=m.margin_mm * 1e-3), m.boundary,
+            m.reach_mm * 1e-3))
     o, s, t, p = f.objective, f.search, f.tool, f.pso
     settings = build(path, "pso", lambda: PlacementSettings(
         rod_radius=t.rod_radius_mm * 1e-3, implant_length=t.implant_length_mm * 1e-3,
+        min_clearance=t.min_clearance_mm * 1e-3,
         lambda_avg=o.lambda_avg, lambda_min=o.lambda_min, equation=o.equation,
         shrink_line2=o.shrink_line2,
         d_range=(s.d_T_range_mm[0] * 1e-3, s.d_T_range_mm[1] * 1e-3),

@@ -107,6 +107,13 @@ def ray_radii(segments: np.ndarray, n_rays: int) -> np.ndarray:
     den = u[:, 0] * eo[:, 1] - u[:, 1] * eo[:, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (ao[:, 0] * eo[:, 1] - ao[:, 1] * eo[:, 0]) / den
+    # a segment along its ray (the projection of an edge in a plane through Z, common
+    # in the slab envelopes) makes den ~ 0 and t garbage: its first point is the nearer end
+    radial = np.abs(den) <= 1e-9 * np.hypot(eo[:, 0], eo[:, 1])
+    if np.any(radial):
+        near = np.minimum(np.hypot(ao[:, 0], ao[:, 1]),
+                          np.hypot(ao[:, 0] + eo[:, 0], ao[:, 1] + eo[:, 1]))
+        t = np.where(radial, near, t)
     ok = np.isfinite(t) & (t > 0)
     np.minimum.at(out, np.mod(ray[ok], n_rays), t[ok])
     return out
@@ -137,15 +144,143 @@ def slice_boundaries(mesh: Any, z: np.ndarray, n_rays: int,
     return out
 
 
+def envelope_segments(mesh: Any, lo: float, hi: float) -> np.ndarray:
+    """The outline of the mesh's part within ``lo <= z <= hi`` (m), projected on the XY
+    plane: (S, 2, 2) segments whose first hit along any ray from the Z axis is the nearest
+    tissue over the whole slab, not only in one plane.
+
+    A triangle clipped to the slab is convex; its projection's edges are its own edges
+    clipped to the slab plus its cuts by the two planes, so those are all the segments
+    needed. Raises :class:`PlanningError` when tissue crosses the Z axis inside the slab
+    (a triangle over the axis, e.g. a cap): no ray from the axis starts in free space.
+    """
+    V = np.asarray(mesh.vertices, dtype=float)
+    F = np.asarray(mesh.faces)
+    E = np.asarray(mesh.edges_unique)
+    a, b = V[E[:, 0]], V[E[:, 1]]
+    keep = (np.maximum(a[:, 2], b[:, 2]) >= lo) & (np.minimum(a[:, 2], b[:, 2]) <= hi)
+    a, b = a[keep], b[keep]
+    e = b - a
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_lo = (lo - a[:, 2]) / e[:, 2]
+        t_hi = (hi - a[:, 2]) / e[:, 2]
+    flat = e[:, 2] == 0            # an edge in a plane z = const inside the slab: all of it
+    t0 = np.where(flat, 0.0, np.clip(np.minimum(t_lo, t_hi), 0.0, 1.0))
+    t1 = np.where(flat, 1.0, np.clip(np.maximum(t_lo, t_hi), 0.0, 1.0))
+    clipped = np.stack([(a + t0[:, None] * e)[:, :2], (a + t1[:, None] * e)[:, :2]], axis=1)
+    # tissue over the axis: a triangle whose projection holds the origin with its height
+    # there inside the slab
+    T = V[F]
+    z_lo_f, z_hi_f = T[:, :, 2].min(axis=1), T[:, :, 2].max(axis=1)
+    T = T[(z_hi_f >= lo) & (z_lo_f <= hi)]
+    p0, p1, p2 = T[:, 0], T[:, 1], T[:, 2]
+    u, v = p1[:, :2] - p0[:, :2], p2[:, :2] - p0[:, :2]
+    o = -p0[:, :2]                          # the origin relative to p0
+    d = u[:, 0] * v[:, 1] - v[:, 0] * u[:, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w1 = (o[:, 0] * v[:, 1] - v[:, 0] * o[:, 1]) / d
+        w2 = (u[:, 0] * o[:, 1] - o[:, 0] * u[:, 1]) / d
+        w0 = 1.0 - w1 - w2
+        over = (np.abs(d) > 0) & (w0 >= 0) & (w1 >= 0) & (w2 >= 0)
+        zc = w0 * p0[:, 2] + w1 * p1[:, 2] + w2 * p2[:, 2]
+    if np.any(over & (zc >= lo) & (zc <= hi)):
+        zz = float(zc[over & (zc >= lo) & (zc <= hi)][0])
+        raise PlanningError(
+            f"tissue crosses the Z axis at z = {zz * 1e3:.1f} mm, inside the slab "
+            f"{lo * 1e3:.1f}..{hi * 1e3:.1f} mm of a slice: move the Z axis inside the cavity "
+            "or narrow the slice range")
+    cuts = cut_segments(mesh, np.array([lo, hi]))
+    return np.concatenate([clipped] + cuts)
+
+
+def slice_cells(z: np.ndarray, z_lo: float, z_hi: float, reach: float) -> np.ndarray:
+    """The slab (M, 2) each slice's curve must stay clear over, m: from half-way to the
+    previous slice to half-way to the next; the first starts at ``z_lo`` (behind it the
+    model assumes tissue), the last reaches ``reach`` beyond ``z_hi`` (so that a ball of
+    radius up to ``reach`` centred in the model is covered)."""
+    z = np.asarray(z, dtype=float)
+    mid = 0.5 * (z[1:] + z[:-1])
+    return np.stack([np.concatenate([[z_lo], mid]), np.concatenate([mid, [z_hi + reach]])],
+                    axis=1)
+
+
+def envelope_boundaries(mesh: Any, cells: np.ndarray, n_rays: int,
+                        segments: list[np.ndarray] | None = None
+                        ) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Boundary radii (M, n_rays), m: per slice, the distance from the Z axis to the
+    nearest tissue anywhere in its cell (:func:`slice_cells`), and the cells' segments
+    (reusable for another ray count)."""
+    segs = segments if segments is not None else [
+        envelope_segments(mesh, float(lo), float(hi)) for lo, hi in cells]
+    mid = 0.5 * (np.asarray(cells)[:, 0] + np.asarray(cells)[:, 1])
+    return slice_boundaries(None, mid, n_rays, segments=segs), segs
+
+
+def excursion(model_rho: np.ndarray, dense: np.ndarray, segments: list[np.ndarray]
+              ) -> np.ndarray:
+    """Per slice, how far (m, >= 0) the fitted curve reaches past tissue: on the dense
+    rays' hits and at every segment end point of the slice's outline (where a tooth's
+    corner can sit between two rays)."""
+    n = model_rho.shape[1]
+    Bd = pc.basis(_sample_angles(dense.shape[1]), n)
+    out = np.maximum(0.0, np.max(model_rho @ Bd.T - dense, axis=1))
+    for j, seg in enumerate(segments):
+        pts = np.asarray(seg, dtype=float).reshape(-1, 2)
+        if pts.size == 0:
+            continue
+        th = np.arctan2(pts[:, 1], pts[:, 0])
+        rho = pc.basis(np.mod(th, TWO_PI), n) @ model_rho[j]
+        out[j] = max(out[j], float(np.max(rho - np.hypot(pts[:, 0], pts[:, 1]))))
+    return out
+
+
 # -- the model --------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Certificate:
+    """What a model built on slab envelopes guarantees (:mod:`oralnav.control.rod_check`
+    relies on it): slice ``j``'s curve, pulled in by ``excursion[j]`` (m), is clear of
+    tissue over its whole cell of :func:`slice_cells`; behind ``z_lo`` lies tissue; the
+    last cell reaches ``reach`` beyond ``z_hi``. Lengths m."""
+
+    z_lo: float
+    z_hi: float
+    reach: float
+    excursion: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        vals = (self.z_lo, self.z_hi, *self.excursion)
+        if not (all(math.isfinite(v) for v in vals) and self.z_hi > self.z_lo
+                and self.reach >= 0 and min(self.excursion, default=0.0) >= 0):
+            raise PlanningError("model certificate needs finite z_lo < z_hi, reach >= 0 and "
+                                "excursions >= 0 (m)")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"z_lo": self.z_lo, "z_hi": self.z_hi,
+                "reach": self.reach if math.isfinite(self.reach) else "inf",
+                "excursion": list(self.excursion)}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Certificate:
+        try:
+            return cls(float(d["z_lo"]), float(d["z_hi"]), float(d["reach"]),
+                       tuple(float(v) for v in d["excursion"]))
+        except KeyError as exc:
+            raise PlanningError(f"model certificate lacks {exc.args[0]!r}") from None
+        except (TypeError, ValueError) as exc:
+            raise PlanningError(f"model certificate is malformed: {exc}") from None
+
 
 @dataclass(frozen=True, eq=False)
 class FPSM:
     """Slices ``z`` (M,) ascending, metres, and control radii ``rho`` (M, N), metres, in
-    the Center frame. Immutable; build with :func:`build_fpsm` or :meth:`cylinder`."""
+    the Center frame. Immutable; build with :func:`build_fpsm` or :meth:`cylinder`.
+    ``certificate`` is set when the curves were fitted to slab envelopes (or the model is
+    analytic): only then can :mod:`oralnav.control.rod_check` certify a rod."""
 
     z: np.ndarray
     rho: np.ndarray
+    certificate: Certificate | None = None
     _coef: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -163,6 +298,11 @@ class FPSM:
             raise PlanningError("surrogate model slice heights must be strictly ascending")
         if np.any(rho < 0):
             raise PlanningError("surrogate model has negative control radii")
+        c = self.certificate
+        if c is not None and (len(c.excursion) != z.size or not c.z_lo <= z[0]
+                              or not z[-1] <= c.z_hi):
+            raise PlanningError("model certificate does not match its slices (one excursion "
+                                "a slice, z_lo <= first slice, last slice <= z_hi)")
         z.setflags(write=False)
         rho = rho.copy()
         rho.setflags(write=False)
@@ -180,7 +320,9 @@ class FPSM:
         if not (radius > 0 and z_max > z_min):
             raise PlanningError(f"cylinder needs radius > 0 and z_max > z_min, got radius "
                                 f"{radius}, z {z_min}..{z_max}")
-        return cls(np.linspace(z_min, z_max, slices), np.full((slices, points), radius))
+        # analytic: nothing between or beyond the slices but the same wall, so it certifies
+        return cls(np.linspace(z_min, z_max, slices), np.full((slices, points), radius),
+                   Certificate(z_min, z_max, math.inf, (0.0,) * slices))
 
     @property
     def slices(self) -> int:
@@ -244,13 +386,18 @@ class FPSM:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-data form (the FPSM file's model part, docs/formats.md)."""
-        return {"frame": "Center", "units": "m", "z": self.z.tolist(),
-                "rho": self.rho.tolist()}
+        d: dict[str, Any] = {"frame": "Center", "units": "m", "z": self.z.tolist(),
+                             "rho": self.rho.tolist()}
+        if self.certificate is not None:
+            d["certificate"] = self.certificate.to_dict()
+        return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> FPSM:
         try:
-            return cls(np.asarray(d["z"], dtype=float), np.asarray(d["rho"], dtype=float))
+            cert = d.get("certificate")
+            return cls(np.asarray(d["z"], dtype=float), np.asarray(d["rho"], dtype=float),
+                       None if cert is None else Certificate.from_dict(cert))
         except KeyError as exc:
             raise PlanningError(f"surrogate model lacks {exc.args[0]!r}") from None
         except (TypeError, ValueError) as exc:
@@ -429,6 +576,12 @@ class SliceReport:
     coverage: float                # area / boundary_area
     penetrating_samples: int       # sampling points beyond their boundary radius
     penetration_max: float         # deepest excursion beyond the boundary on dense rays (m)
+    plane_area: float = math.nan   # the plane cut's visible region (same rule as boundary_area)
+
+    @property
+    def coverage_plane(self) -> float:
+        """Area over the plane cut's area: the paper's coverage for envelope-fitted curves."""
+        return self.area / self.plane_area
 
 
 @dataclass(frozen=True)
@@ -441,6 +594,7 @@ class BuildReport:
     fit_s: float
     iterations: int
     per_slice: tuple[SliceReport, ...] = field(default_factory=tuple)
+    boundary: str = "plane"
 
     @property
     def total_s(self) -> float:
@@ -451,6 +605,13 @@ class BuildReport:
         """Total curve area over total visible boundary area."""
         return (sum(r.area for r in self.per_slice)
                 / sum(r.boundary_area for r in self.per_slice))
+
+    @property
+    def coverage_plane(self) -> float:
+        """Total curve area over total plane-cut area (equals :attr:`coverage` for plane
+        fits)."""
+        return (sum(r.area for r in self.per_slice)
+                / sum(r.plane_area for r in self.per_slice))
 
     @property
     def penetrating_samples(self) -> int:
@@ -464,10 +625,12 @@ class BuildReport:
         return {"method": self.method, "slices": self.slices, "points": self.points,
                 "samples": self.samples, "preassign_s": self.preassign_s,
                 "fit_s": self.fit_s, "total_s": self.total_s,
-                "iterations": self.iterations, "coverage": self.coverage,
+                "iterations": self.iterations, "boundary": self.boundary,
+                "coverage": self.coverage, "coverage_plane": self.coverage_plane,
                 "penetrating_samples": self.penetrating_samples,
                 "penetration_max_m": self.penetration_max,
-                "per_slice": [vars(r) for r in self.per_slice]}
+                "per_slice": [dict(vars(r), coverage_plane=r.coverage_plane)
+                              for r in self.per_slice]}
 
 
 def slice_heights(z_min: float, z_max: float, slices: int) -> np.ndarray:
@@ -480,9 +643,12 @@ def slice_heights(z_min: float, z_max: float, slices: int) -> np.ndarray:
     return z_min + (np.arange(slices) + 0.5) * (z_max - z_min) / slices
 
 
-def report_slices(model: FPSM, dense: np.ndarray, samples: np.ndarray) -> list[SliceReport]:
+def report_slices(model: FPSM, dense: np.ndarray, samples: np.ndarray,
+                  plane: np.ndarray | None = None) -> list[SliceReport]:
     """Coverage and penetration of each slice against its boundary radii on the dense
-    rays ``dense`` (M, R) and on the sampling rays ``samples`` (M, Z)."""
+    rays ``dense`` (M, R) and on the sampling rays ``samples`` (M, Z); ``plane`` (M, R),
+    the plane cuts' radii on the dense rays, when the boundary is not the plane's."""
+    plane = dense if plane is None else plane
     out = []
     R = dense.shape[1]
     Bd = pc.basis(_sample_angles(R), model.points)
@@ -497,33 +663,68 @@ def report_slices(model: FPSM, dense: np.ndarray, samples: np.ndarray) -> list[S
             z=float(model.z[j]), area=a_c, boundary_area=float(a_b),
             coverage=float(a_c / a_b),
             penetrating_samples=int(np.count_nonzero(curve_s[j] > samples[j] + 1e-12)),
-            penetration_max=float(max(0.0, np.max(curve_d[j] - dense[j])))))
+            penetration_max=float(max(0.0, np.max(curve_d[j] - dense[j]))),
+            plane_area=float(0.5 * np.mean(plane[j] ** 2) * TWO_PI)))
     return out
+
+
+#: Boundary kinds of :func:`build_fpsm`.
+BOUNDARIES = ("envelope", "plane")
+
+#: Default reach of the last cell beyond the model's front end (m): covers rods of up to
+#: this radius leaving the model there.
+REACH = 0.01
 
 
 def build_fpsm(mesh: Any, slices: int = 15, points: int = 15, samples: int = 150,
                z_range: tuple[float, float] | None = None,
-               settings: FitSettings | None = None) -> tuple[FPSM, BuildReport]:
+               settings: FitSettings | None = None, boundary: str = "envelope",
+               reach: float = REACH) -> tuple[FPSM, BuildReport]:
     """Build a model of ``mesh`` (trimesh, Center frame, metres): ``slices`` planes across
     ``z_range`` (default: the mesh's z extent), ``points`` control points and ``samples``
     sampling rays per slice. Returns the model and its :class:`BuildReport`; the timings
-    cover the pre-assignment and the fit, not the coverage report."""
+    cover the pre-assignment and the fit, not the coverage report.
+
+    ``boundary="plane"`` fits each curve to its plane's cut, as the paper does (§3.2).
+    ``"envelope"`` (default) fits it to the nearest tissue over its whole cell
+    (:func:`slice_cells`), so that the model, pulled in by the measured excursion, holds
+    no tissue anywhere between the slices either, and carries a :class:`Certificate`.
+    Coverage is reported against the fitted boundary and against the plane cuts."""
     s = settings or FitSettings()
     if samples < 3:
         raise PlanningError(f"samples must be >= 3, got {samples}")
+    if boundary not in BOUNDARIES:
+        raise PlanningError(f"unknown boundary {boundary!r}; one of {BOUNDARIES}")
+    if not (reach >= 0 and math.isfinite(reach)):
+        raise PlanningError(f"reach must be finite and >= 0 m, got {reach}")
     if mesh is None or len(getattr(mesh, "faces", ())) == 0:
         raise PlanningError("the mesh is empty: no triangles to fit the surrogate model to")
     lo, hi = (float(mesh.bounds[0][2]), float(mesh.bounds[1][2])) if z_range is None \
         else (float(z_range[0]), float(z_range[1]))
     z = slice_heights(lo, hi, slices)
     t0 = time.perf_counter()
-    segs = cut_segments(mesh, z)
-    boundary = slice_boundaries(mesh, z, samples, segments=segs)
+    plane_segs = cut_segments(mesh, z)
+    if boundary == "plane":
+        segs = plane_segs
+        b_samples = slice_boundaries(mesh, z, samples, segments=segs)
+    else:
+        cells = slice_cells(z, lo, hi, reach)
+        # the back wall at z_lo is assumed anyway (tissue behind); a cap lying in that
+        # plane must not count as tissue over the axis
+        cells[0, 0] = max(cells[0, 0], lo + 1e-7)
+        b_samples, segs = envelope_boundaries(mesh, cells, samples)
     t1 = time.perf_counter()
-    fit = fit_slices(boundary, points, s)
-    model = FPSM(z, fit.rho)
+    fit = fit_slices(b_samples, points, s)
     dense = slice_boundaries(mesh, z, DENSE_RAYS, segments=segs)
+    cert = None
+    if boundary == "envelope":
+        exc = excursion(fit.rho, dense, segs)
+        cert = Certificate(lo, hi, reach, tuple(float(v) for v in exc))
+    model = FPSM(z, fit.rho, cert)
+    plane = dense if boundary == "plane" else slice_boundaries(mesh, z, DENSE_RAYS,
+                                                                segments=plane_segs)
     report = BuildReport(method=s.method, slices=slices, points=points, samples=samples,
                          preassign_s=t1 - t0, fit_s=fit.seconds, iterations=fit.iterations,
-                         per_slice=tuple(report_slices(model, dense, boundary)))
+                         per_slice=tuple(report_slices(model, dense, b_samples, plane)),
+                         boundary=boundary)
     return model, report

@@ -24,6 +24,13 @@ Two choices differ from the paper's text, and both are charted (``oralnav bench 
 - Eq. 22 squares ``f_safe``, which would score a collision (f < 0) like clearance. The
   variant here keeps the sign, ``sgn(f) f^2``, so it still fails only as the paper says.
 
+The search scores placements with the paper's queries; the result is then certified
+(:mod:`oralnav.control.rod_check`) when the model carries a certificate: both lines, as
+rods of the rod radius from their start out through the model's front, must be clear of
+the tissue by a bound that holds for the mesh itself, not only for the surrogate's
+rays. ``collision_free`` needs both; a model without a certificate is searched as the
+paper does and its placement says ``certified=False``.
+
 Objective values use distances in millimetres, as the paper's do (its Fig. 17 optimum is
 -2.611), so they compare with its figures; every other length here is in metres.
 """
@@ -32,6 +39,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,6 +47,7 @@ import numpy as np
 from .errors import PlanningError
 from .fpsm import FPSM
 from .pso import PSOSettings, minimize_pso
+from .rod_check import RodCheck
 
 #: Objective equations of the paper: 14 (adopted), 21 (linear), 22 (squared).
 EQUATIONS = (14, 21, 22)
@@ -174,6 +183,9 @@ class PlacementSettings:
     d_range: tuple[float, float] = (0.0, 0.12)
     theta_range: tuple[float, float] = (-math.pi / 2, math.pi / 2)
     max_hole_depth: float = 0.02   # a hole farther than this outside the model is refused
+    # certified rod clearance both lines must keep (certified models only): room for the
+    # guided insertion's tracking and fixture deviations before its alarm trips
+    min_clearance: float = 0.0005
     pso: PSOSettings = field(default_factory=PSOSettings)
 
     def __post_init__(self) -> None:
@@ -183,6 +195,8 @@ class PlacementSettings:
         if not (self.rod_radius >= 0 and self.implant_length > 0):
             raise PlanningError(f"rod radius must be >= 0 and implant length > 0, got "
                                 f"{self.rod_radius} m and {self.implant_length} m")
+        if not (self.min_clearance >= 0 and math.isfinite(self.min_clearance)):
+            raise PlanningError(f"min_clearance must be >= 0 m, got {self.min_clearance}")
         if not (self.lambda_avg >= 0 and self.lambda_min > 0):
             raise PlanningError("lambda_avg must be >= 0 and lambda_min > 0")
         for name in ("d_range", "theta_range"):
@@ -277,6 +291,10 @@ class Placement:
     f_safe_line2: float            # m
     T_C_tool: np.ndarray           # the tool frame at the target
     history: np.ndarray = field(repr=False)
+    certified: bool = False        # the lines' clearances below hold for the mesh itself
+    clearance_line1: float = math.nan   # certified rod clearance (m); NaN: no certificate
+    clearance_line2: float = math.nan
+    reason: str = ""               # why it is not collision-free, for the operator
 
     def to_dict(self) -> dict:
         """The ``oralnav plan place --json`` object (SI units)."""
@@ -285,19 +303,79 @@ class Placement:
                 "collision_free": self.collision_free}
 
 
-def place(model: FPSM, hole: Hole, settings: PlacementSettings | None = None) -> Placement:
-    """Optimise ``(d_T, theta_T)`` by PSO on the chosen objective (eq. 14 by default)."""
+#: How far (m) a line is followed when certified: it is clipped where it leaves the
+#: model's front, so any length past the mouth does.
+LINE_LENGTH = 1.0
+
+#: Added to the objective of a placement that is not certified clear, plus its shortfall
+#: in mm: worse than any certified one (objectives are a few sqrt(mm)).
+UNCERTIFIED_PENALTY = 1000.0
+
+
+def certify_lines(check: RodCheck, problem: PlacementProblem, x: np.ndarray,
+                  need: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Certified clearances (m) of line1 and line2 for K placements ``x`` (K, 2), as rods
+    of the rod radius (line2 of ``rod_radius`` only when ``shrink_line2``, as in the
+    search). A value below ``need`` (m) says only that the line is not certified that
+    clear (:meth:`~oralnav.control.rod_check.RodCheck.clearances`)."""
+    s = problem.s
+    P1, P2, D = problem.lines(x)
+    K = P1.shape[0]
+    T = np.concatenate([P1, P2])
+    E = T + LINE_LENGTH * np.concatenate([D, D])
+    r = np.concatenate([np.full(K, s.rod_radius),
+                        np.full(K, s.rod_radius if s.shrink_line2 else 0.0)])
+    c = check.clearances(T, E, r)
+    return c[:K], c[K:]
+
+
+def _uncertified_penalty(check: RodCheck, problem: PlacementProblem
+                         ) -> Callable[[np.ndarray], np.ndarray]:
+    def penalty(x: np.ndarray) -> np.ndarray:
+        need = problem.s.min_clearance
+        c1, c2 = certify_lines(check, problem, x, need)
+        short = need - np.minimum(c1, c2)
+        return np.where(short <= 0, 0.0, UNCERTIFIED_PENALTY + short * 1e3)
+    return penalty
+
+
+def place(model: FPSM, hole: Hole, settings: PlacementSettings | None = None,
+          check: RodCheck | None = None) -> Placement:
+    """Optimise ``(d_T, theta_T)`` by PSO on the chosen objective (eq. 14 by default).
+
+    When the model carries a certificate, placements whose lines are not certified clear
+    (:func:`certify_lines`) are penalised during the search (lazily, see
+    :func:`~oralnav.control.pso.minimize_pso`) and the result must be certified to count
+    as collision-free. ``check``: a prebuilt :class:`~oralnav.control.rod_check.RodCheck`
+    of ``model``, built here otherwise (a few hundred ms); ``time_ms`` is the search."""
     problem = PlacementProblem(model, hole, settings)
     s = problem.s
     lo = np.array([s.d_range[0], s.theta_range[0]])
     hi = np.array([s.d_range[1], s.theta_range[1]])
+    certified = model.certificate is not None
+    penalty = None
+    if certified:
+        check = check if check is not None else RodCheck(model)
+        penalty = _uncertified_penalty(check, problem)
     t0 = time.perf_counter()
-    res = minimize_pso(problem.evaluate, lo, hi, s.pso)
+    res = minimize_pso(problem.evaluate, lo, hi, s.pso, penalty=penalty)
     ms = (time.perf_counter() - t0) * 1e3
     f1, f2, _, _ = problem.line_values(res.x[None])
     ok = bool(f1[0] > 0 and f2[0] > 0)
+    reason = "" if ok else (f"no placement clears the surrogate model: f_safe of line1 "
+                            f"{f1[0] * 1e3:.2f} mm, line2 {f2[0] * 1e3:.2f} mm")
+    c1 = c2 = math.nan
+    if check is not None and certified:
+        cc1, cc2 = certify_lines(check, problem, res.x[None], s.min_clearance)
+        c1, c2 = float(cc1[0]), float(cc2[0])
+        if ok and not min(c1, c2) >= s.min_clearance:
+            ok = False
+            reason = (f"no placement found keeps the certified {s.min_clearance * 1e3:.2f} mm "
+                      f"from the tissue (the best clears the surrogate's rays; certified rod "
+                      f"clearance of line1 {c1 * 1e3:.2f} mm, line2 {c2 * 1e3:.2f} mm)")
     return Placement(d_T=float(res.x[0]), theta_T=float(res.x[1]), objective=float(res.value),
                      iterations=res.iterations, evaluations=res.evaluations, time_ms=ms,
                      collision_free=ok, f_safe_line1=float(f1[0]), f_safe_line2=float(f2[0]),
                      T_C_tool=tool_pose(problem.T_ch, float(res.x[0]), float(res.x[1])),
-                     history=res.history)
+                     history=res.history, certified=certified, clearance_line1=c1,
+                     clearance_line2=c2, reason=reason)

@@ -53,8 +53,13 @@ class PSOResult:
 
 
 def minimize_pso(objective: Callable[[np.ndarray], np.ndarray], lower: np.ndarray,
-                 upper: np.ndarray, settings: PSOSettings | None = None) -> PSOResult:
-    """Minimise ``objective`` over the box [lower, upper] (D,) by eq. 20."""
+                 upper: np.ndarray, settings: PSOSettings | None = None,
+                 penalty: Callable[[np.ndarray], np.ndarray] | None = None) -> PSOResult:
+    """Minimise ``objective`` over the box [lower, upper] (D,) by eq. 20.
+
+    ``penalty`` (optional, >= 0, added to the objective) is a constraint too costly to
+    evaluate for the whole swarm: it is evaluated lazily, only for positions about to
+    become a particle's best, since no other position's value is ever used."""
     s = settings or PSOSettings()
     lo = np.asarray(lower, dtype=float)
     hi = np.asarray(upper, dtype=float)
@@ -66,6 +71,8 @@ def minimize_pso(objective: Callable[[np.ndarray], np.ndarray], lower: np.ndarra
     x = lo + rng.random((s.particles, lo.size)) * span
     v = (rng.random(x.shape) - 0.5) * vmax
     f = np.asarray(objective(x), dtype=float)
+    if penalty is not None:
+        f = f + np.asarray(penalty(x), dtype=float)
     pbest, pval = x.copy(), f.copy()
     g = int(np.argmin(pval))
     gbest, gval = pbest[g].copy(), float(pval[g])
@@ -85,6 +92,9 @@ def minimize_pso(objective: Callable[[np.ndarray], np.ndarray], lower: np.ndarra
         f = np.asarray(objective(x), dtype=float)
         evals += s.particles
         better = f < pval
+        if penalty is not None and np.any(better):
+            f[better] += np.asarray(penalty(x[better]), dtype=float)
+            better = f < pval
         pbest[better], pval[better] = x[better], f[better]
         g = int(np.argmin(pval))
         if pval[g] < gval - s.tolerance:

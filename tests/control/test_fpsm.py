@@ -149,3 +149,47 @@ def test_model_validation_and_round_trip():
     m = FPSM.cylinder(0.05, 0.0, 0.1, 4, 6)
     m2 = FPSM.from_dict(m.to_dict())
     assert np.array_equal(m.z, m2.z) and np.array_equal(m.rho, m2.rho)
+
+
+def test_envelope_sees_a_tooth_between_slices():
+    """Issue 6, FPSM against the mesh: a ridge that lies between two slice planes is
+    missed by the plane cuts but bounds the envelope of the cells it crosses, and the
+    envelope never reaches past a plane cut."""
+    tube = elliptic_tube()
+    ridge = trimesh.creation.box((0.02, 0.004, 0.002))
+    ridge.apply_translation([0.0, -0.016, 0.0475])   # between the planes at 45 and 51 mm
+    mesh = trimesh.util.concatenate([tube, ridge])
+    z = fpsm.slice_heights(0.0, 0.09, 15)
+    cells = fpsm.slice_cells(z, 0.0, 0.09, 0.01)
+    env, _ = fpsm.envelope_boundaries(mesh, cells, 360)
+    plane = fpsm.slice_boundaries(mesh, z, 360)
+    assert np.all(env <= plane + 1e-12)
+    down = 270                                        # the ray at -90 deg
+    j = int(np.searchsorted(cells[:, 1], 0.0475))
+    assert plane[j, down] == pytest.approx(0.02, abs=1e-4)
+    assert env[j, down] == pytest.approx(0.014, abs=1e-4)
+
+
+def test_envelope_refuses_tissue_over_the_axis():
+    """A cap across the Z axis inside a cell leaves no free ray: a clear error."""
+    tube = elliptic_tube()
+    cap = trimesh.creation.box((0.08, 0.08, 0.001))
+    cap.apply_translation([0.0, 0.0, 0.05])
+    mesh = trimesh.util.concatenate([tube, cap])
+    with pytest.raises(PlanningError, match="crosses the Z axis"):
+        fpsm.envelope_segments(mesh, 0.047, 0.053)
+
+
+def test_envelope_build_is_certified_and_round_trips():
+    """The default build fits slab envelopes and records the excursion it measured; the
+    certificate survives to_dict/from_dict; coverage is reported against both the
+    envelope and the plane cuts."""
+    model, rep = build_fpsm(elliptic_tube(wobble=0.001))
+    c = model.certificate
+    assert rep.boundary == "envelope" and c is not None
+    assert len(c.excursion) == model.slices and max(c.excursion) < 2e-4
+    assert rep.coverage_plane <= rep.coverage + 1e-9 and rep.coverage > 0.9
+    back = FPSM.from_dict(model.to_dict())
+    assert back.certificate == c
+    with pytest.raises(PlanningError, match="certificate"):
+        FPSM(model.z, model.rho, fpsm.Certificate(0.0, 0.09, 0.01, (0.0,) * 3))

@@ -161,3 +161,66 @@ def test_placement_time_is_small():
     place(CYL, HOLE, s)
     t = min(place(CYL, HOLE, s).time_ms for _ in range(3))
     assert t < 60.0
+
+
+def test_cylinder_case_is_certified():
+    """The paper's cylinder answer (65.5 mm) holds under certification: both lines keep a
+    certified clearance (3 mm of the exact 3 mm, less the stated slack)."""
+    p = _place()
+    assert p.certified and p.collision_free
+    assert p.d_T == pytest.approx(0.0655, abs=2e-4)
+    assert 0.0025 < p.clearance_line1 <= 0.003 + 1e-9
+
+
+@pytest.fixture(scope="module")
+def mouth_scene():
+    from importlib import resources
+    from pathlib import Path
+
+    from oralnav.config.planning import load_planning_scene
+    from oralnav.control.rod_check import RodCheck
+
+    path = Path(str(resources.files("oralnav.config").joinpath(
+        "examples/oral_cavity_case.toml")))
+    scene = load_planning_scene(path)
+    return scene, RodCheck(scene.model)
+
+
+def _exact_line_clearances(scene, p):
+    from oralnav.bench.planning import _MeshOracle
+
+    oracle = _MeshOracle(scene.mesh)
+    prob = PlacementProblem(scene.model, scene.hole, scene.settings)
+    P1, P2, D = prob.lines(np.array([[p.d_T, p.theta_T]]))
+    z_hi = scene.model.certificate.z_hi
+    out = []
+    for P in (P1[0], P2[0]):
+        E = P + (z_hi - P[2]) / D[0, 2] * D[0]
+        out.append(oracle.clearance(P, E) - scene.settings.rod_radius)
+    return out
+
+
+def test_mouth_placement_is_clear_of_the_mesh(mouth_scene):
+    """Bad input / safety: in the parametric mouth the placement reported collision-free
+    is clear of the mesh itself (python-fcl), by at least its certified clearance."""
+    scene, check = mouth_scene
+    p = place(scene.model, scene.hole, scene.settings, check)
+    assert p.collision_free and p.certified
+    assert min(p.clearance_line1, p.clearance_line2) >= scene.settings.min_clearance
+    e1, e2 = _exact_line_clearances(scene, p)
+    assert e1 >= p.clearance_line1 and e2 >= p.clearance_line2
+
+
+def test_paper_search_alone_reports_a_colliding_placement(mouth_scene):
+    """Why certification exists: with a 4 mm rod the paper's criterion (eq. 13 > 0 on both
+    lines) accepts a placement that python-fcl finds cutting the mesh; the certified
+    search reports no safe placement instead."""
+    scene, check = mouth_scene
+    s = replace(scene.settings, rod_radius=0.004)
+    uncertified = FPSM(scene.model.z, scene.model.rho)      # same curves, no certificate
+    paper = place(uncertified, scene.hole, s)
+    assert paper.collision_free and not paper.certified
+    scene4 = replace(scene, settings=s)
+    assert min(_exact_line_clearances(scene4, paper)) < 0
+    p = place(scene.model, scene.hole, s, check)
+    assert not p.collision_free and "certified" in p.reason

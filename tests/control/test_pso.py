@@ -50,3 +50,20 @@ def test_bad_settings_refused():
         PSOSettings(c1=-1)
     with pytest.raises(PlanningError, match="upper > lower"):
         minimize_pso(sphere, np.ones(2), np.ones(2))
+
+
+def test_lazy_penalty_is_a_constraint_and_only_asked_for_candidates():
+    """The penalty (a constraint too costly for the whole swarm: the certified rod check)
+    is evaluated only for positions about to become a particle's best, and still steers
+    the search: min x^2 + y^2 subject to x >= 0.3 ends at (0.3, 0)."""
+    asked = []
+
+    def penalty(x):
+        asked.append(len(x))
+        return np.where(x[:, 0] >= 0.3, 0.0, 100.0 + (0.3 - x[:, 0]))
+
+    res = minimize_pso(lambda x: np.sum(x * x, axis=1), np.array([-1.0, -1.0]),
+                       np.array([1.0, 1.0]), PSOSettings(seed=1), penalty=penalty)
+    assert res.x[0] == pytest.approx(0.3, abs=1e-3) and res.value == pytest.approx(0.09, abs=1e-3)
+    s = PSOSettings(seed=1)
+    assert sum(asked) < 0.8 * res.evaluations and asked[0] == s.particles
