@@ -14,11 +14,11 @@ the TCP (the instrument head) and the TCP's orientation is held at the planned o
 Per period (:meth:`GuidedMotion.step`): the sensor's force, rotated into ``F``, drives
 the admittance (:mod:`oralnav.control.admittance`); the commanded head position goes back
 to ``B`` with the planned orientation. Independently, the rod at the *measured* TCP pose
-is checked against the model (eqs. 10-13, shrunk by the rod radius): when its smallest safe
-distance falls below ``alarm_distance`` the step reports it, and the control loop stops
-the arm. The head itself counts only while it is inside the modelled cavity: once it is
-out in front of the mouth (beyond the last slice) only the rod's slice crossings count;
-behind the first slice it is a collision.
+is checked against the tissue by the certified rod clearance
+(:mod:`oralnav.control.rod_check`; the plan's model must carry a certificate): when the
+rod cannot be certified ``alarm_distance`` clear the step reports it, and the control
+loop stops the arm. Only the rod's part inside the modelled cavity counts: out in front of
+the mouth (beyond the model's front) nothing is checked; behind its back end is tissue.
 
 Pure math: no I/O, no clock (the caller passes ``dt``).
 """
@@ -33,7 +33,8 @@ import numpy as np
 from .admittance import AdmittanceController, AdmittanceSettings, AdmittanceState
 from .errors import PlanningError
 from .fpsm import FPSM
-from .placement import line_safe_distances
+from .placement import LINE_LENGTH
+from .rod_check import RodCheck
 from .virtual_fixture import VirtualFixture
 
 
@@ -45,9 +46,10 @@ class GuidePlan:
     T_F_tool: np.ndarray
     model: FPSM
     rod_radius: float
-    alarm_distance: float = 0.001
+    alarm_distance: float = 0.0
     fixture: VirtualFixture | None = None
     admittance: AdmittanceSettings = AdmittanceSettings()
+    check: RodCheck | None = None      # built from the model when not given (~0.3 s)
 
     def __post_init__(self) -> None:
         T = np.asarray(self.T_F_tool, dtype=float)
@@ -59,6 +61,12 @@ class GuidePlan:
         if not (self.rod_radius >= 0 and np.isfinite(self.alarm_distance)):
             raise PlanningError("rod_radius must be >= 0 and alarm_distance finite (m)")
         object.__setattr__(self, "T_F_tool", T)
+        if self.model.certificate is None:
+            raise PlanningError(
+                "a guided insertion needs a certified surrogate model (fitted to slab "
+                "envelopes): the rod alarm must hold for the tissue, not only the model")
+        if self.check is None:
+            object.__setattr__(self, "check", RodCheck(self.model))
         if self.fixture is None:
             object.__setattr__(self, "fixture", self.fixture_for(T, self.model))
 
@@ -83,7 +91,7 @@ class GuidePlan:
 class GuideStep(NamedTuple):
     setpoint: np.ndarray            # T_B_tcp to servo to (4x4, m)
     state: AdmittanceState          # the admittance's commanded point, in F
-    rod_distance: float             # smallest safe distance of the rod at the measured pose (m)
+    rod_distance: float             # certified clearance of the rod at the measured pose (m)
     alarm: str | None               # why the arm must stop, or None
 
 
@@ -113,18 +121,15 @@ class GuidedMotion:
         self._started = False
 
     def rod_distance(self, T_F_tcp: np.ndarray) -> float:
-        """Smallest safe distance (m) of the rod at the TCP pose ``T_F_tcp`` (the rod along
-        the TCP's x axis from ``r`` off its origin, eq. 19), shrunk by the rod radius."""
-        model, r = self.plan.model, self.plan.rod_radius
+        """Certified clearance (m) of the rod at the TCP pose ``T_F_tcp``: the rod of the
+        plan's radius along the TCP's x axis from ``r`` off its origin (eq. 19's line1),
+        out to where it leaves the model's front (:mod:`oralnav.control.rod_check`).
+        ``inf`` while the head is out in front of the mouth; exact only down to the alarm
+        bound (a value below it says only that the rod is not certified that clear)."""
+        r = self.plan.rod_radius
         x = T_F_tcp[:3, 0]
         P = T_F_tcp[:3, 3] + r * x
-        d, _ = line_safe_distances(model, P[None], x[None], r)
-        d = d[0]
-        head_z = P[2]
-        if head_z > model.z[-1]:          # the head is out in front of the mouth
-            d = d[1:]
-        vals = d[~np.isnan(d)]
-        return float(vals.min()) if vals.size else float("inf")
+        return self.plan.check.clearance(P, P + LINE_LENGTH * x, r, self.plan.alarm_distance)
 
     def step(self, force_B: np.ndarray, T_B_F: np.ndarray, T_B_tcp_measured: np.ndarray,
              dt: float) -> GuideStep:
@@ -145,9 +150,10 @@ class GuidedMotion:
         T_F_tcp[:3, 3] = R_B_F.T @ (Tm[:3, 3] - T_B_F[:3, 3])
         dmin = self.rod_distance(T_F_tcp)
         alarm = None
-        if dmin < self.plan.alarm_distance:
-            alarm = (f"rod collision alarm: safe distance {dmin * 1e3:.2f} mm below "
-                     f"{self.plan.alarm_distance * 1e3:.2f} mm")
+        if not dmin >= self.plan.alarm_distance:
+            alarm = (f"rod collision alarm: the rod is not certified "
+                     f"{self.plan.alarm_distance * 1e3:.2f} mm clear of the tissue "
+                     f"(bound {dmin * 1e3:.2f} mm)")
         return GuideStep(setpoint, st, dmin, alarm)
 
 

@@ -311,3 +311,12 @@ class RodCheck:
         """Certified distance (m, up to ``cap``) from point ``p`` (3,) to tissue."""
         return float(_ball(self.grids, self.x0, self.y0, self.h, self.cells, self.z_lo,
                            self.cap, float(p[0]), float(p[1]), float(p[2])))
+
+
+def warm_up() -> None:
+    """Load (or compile) the kernels now, on a tiny analytic model: a process that will
+    run the rod alarm in its control loop calls this before the loop starts, so the first
+    guided period does not stall on numba's cache."""
+    rc = RodCheck(FPSM.cylinder(0.01, 0.0, 0.02, 3, 3), grid=1e-3)
+    rc.clearances(np.zeros((1, 3)) + [0, 0, 0.005], np.zeros((1, 3)) + [0, 0, 0.015], 0.001)
+    rc.clearance(np.array([0, 0, 0.005]), np.array([0, 0, 0.015]), 0.001)

@@ -99,3 +99,22 @@ def test_uncertified_model_is_refused():
     assert model.certificate is None and report.boundary == "plane"
     with pytest.raises(PlanningError, match="no certificate"):
         RodCheck(model)
+
+
+def test_guide_plan_needs_a_certified_model():
+    """The guided insertion's rod alarm must hold for the tissue: a plan on a model without
+    a certificate is refused; a certified one gets its check built."""
+    from oralnav.control.guided_motion import GuidePlan
+
+    cyl = FPSM.cylinder(0.03, 0.0, 0.09, 10, 15)
+    T = np.eye(4)
+    T[:3, 3] = [0.0, -0.02, 0.05]
+    assert GuidePlan(T, cyl, 0.002).check is not None
+    with pytest.raises(PlanningError, match="certified"):
+        GuidePlan(T, FPSM(cyl.z, cyl.rho), 0.002)
+
+
+def test_warm_up_runs():
+    from oralnav.control.rod_check import warm_up
+
+    warm_up()
