@@ -55,6 +55,7 @@ import os
 import platform
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from importlib import resources
 from pathlib import Path
@@ -77,7 +78,13 @@ from oralnav.control.fpsm import (
     report_slices,
     slice_boundaries,
 )
-from oralnav.control.placement import PlacementProblem, line_safe_distances, place
+from oralnav.control.placement import (
+    PlacementProblem,
+    line_safe_distances,
+    place,
+    uncertified_penalty,
+)
+from oralnav.control.rod_check import RodCheck
 
 #: The paper's Table 1: N -> (coverage %, seconds per slice); MATLAB R2017b, i5-10200H,
 #: lambda_p = 20000, alpha = 1.0, one boundary (its Fig. 7a).
@@ -284,7 +291,7 @@ def full_model(mesh: Any, quick: bool, out: Path) -> dict[str, Any]:
             reps = []
             for _ in range(repeats):
                 model, rep = build_fpsm(mesh, slices, points, SAMPLES,
-                                        settings=FITS[method])
+                                        settings=FITS[method], boundary="plane")
                 reps.append(rep)
             k = int(np.argsort([r.total_s for r in reps])[len(reps) // 2])  # the median run
             rep = reps[k]
@@ -310,6 +317,34 @@ def full_model(mesh: Any, quick: bool, out: Path) -> dict[str, Any]:
                            f"FPSM 15 x 15 ({method}): coverage {rep.coverage:.1%}, "
                            f"{rep.penetrating_samples} penetrating samples")
 
+    for r in rows:
+        r["boundary"] = "plane"
+    # the planner's model: slab envelopes (certifiable), and the rod check's grids on it
+    reps, checks = [], []
+    for _ in range(repeats):
+        model, rep = build_fpsm(mesh, 15, 15, SAMPLES, settings=FITS["slp"],
+                                boundary="envelope")
+        t0 = time.perf_counter()
+        RodCheck(model)
+        checks.append(time.perf_counter() - t0)
+        reps.append(rep)
+    k = int(np.argsort([r.total_s for r in reps])[len(reps) // 2])
+    rep = reps[k]
+    env = {"slices": 15, "points": 15, "method": "slp", "boundary": "envelope",
+           "total_s": rep.total_s, "preassign_s": rep.preassign_s, "fit_s": rep.fit_s,
+           "rod_check_build_s": float(np.median(checks)),
+           "coverage": rep.coverage, "coverage_plane": rep.coverage_plane,
+           "coverage_worst_slice": min(r.coverage for r in rep.per_slice),
+           "coverage_plane_worst_slice": min(r.coverage_plane for r in rep.per_slice),
+           "penetrating_samples": rep.penetrating_samples,
+           "penetration_max_mm": rep.penetration_max * 1e3,
+           "excursion_max_mm": max(model.certificate.excursion) * 1e3}
+    _say(f"full model 15x15 slp on slab envelopes: {env['total_s'] * 1e3:.0f} ms + rod-check "
+         f"grids {env['rod_check_build_s'] * 1e3:.0f} ms, coverage {env['coverage']:.1%} of "
+         f"the envelopes, {env['coverage_plane']:.1%} of the plane cuts, "
+         f"{env['penetrating_samples']} penetrating samples, excursion "
+         f"{env['excursion_max_mm']:.3f} mm")
+
     def get(s: int, p: int, m: str) -> dict[str, Any]:
         return next(r for r in rows if (r["slices"], r["points"], r["method"]) == (s, p, m))
 
@@ -328,8 +363,12 @@ def full_model(mesh: Any, quick: bool, out: Path) -> dict[str, Any]:
               "met": bool(ours["total_s"] <= BUILD_TARGET_S
                           and ours["coverage"] >= COVERAGE_TARGET
                           and ours["penetrating_samples"] == 0)}
-    return {"samples": SAMPLES, "repeats": repeats, "rows": rows, "speedup": speed,
-            "target": target, "paper_s": PAPER_BUILD_S}
+    target["certified_model"] = {
+        **env, "met_time": bool(env["total_s"] + env["rod_check_build_s"] <= BUILD_TARGET_S),
+        "met_coverage_of_envelope": bool(env["coverage"] >= COVERAGE_TARGET),
+        "met_coverage_of_plane": bool(env["coverage_plane"] >= COVERAGE_TARGET)}
+    return {"samples": SAMPLES, "repeats": repeats, "rows": rows, "envelope": env,
+            "speedup": speed, "target": target, "paper_s": PAPER_BUILD_S}
 
 
 def _chart_build(doc: dict[str, Any], out: Path) -> Path:
@@ -531,7 +570,11 @@ def _time_rods(model: FPSM, oracle: _MeshOracle, T: np.ndarray, D: np.ndarray,
 
 def fpsm_vs_mesh(scene: PlanningScene, quick: bool) -> dict[str, Any]:
     """The scene's FPSM (the planner's model) against fcl on its mesh."""
-    mesh, model = scene.mesh, scene.model
+    mesh, certified = scene.mesh, scene.model
+    # eq. 13's query as the paper has it: curves fitted to the plane cuts
+    model = build_fpsm(mesh, certified.slices, certified.points, SAMPLES,
+                       settings=FitSettings(method=scene.build.method if scene.build
+                                            else "slp"), boundary="plane")[0]
     n = 1000 if quick else 2000
     oracle = _MeshOracle(mesh)
     _say(f"fpsm vs mesh: fcl BVH of {len(mesh.faces)} triangles built in "
@@ -553,7 +596,8 @@ def fpsm_vs_mesh(scene: PlanningScene, quick: bool) -> dict[str, Any]:
         h = (model.z[-1] - model.z[0]) / (m - 1)
         lo = float(model.z[0] - h / 2)
         denser[m] = build_fpsm(mesh, m, model.points, SAMPLES, (lo, lo + m * h),
-                               FitSettings(method=res["model"]["method"] or "slp"))[0]
+                               FitSettings(method=res["model"]["method"] or "slp"),
+                               boundary="plane")[0]
     res["by_slices"] = []
     for k, r in enumerate(ROD_RADII):
         T, D, E = _rods(mesh, model, n, np.random.default_rng([4, k, 0]))
@@ -597,7 +641,74 @@ def fpsm_vs_mesh(scene: PlanningScene, quick: bool) -> dict[str, Any]:
         _say(f"  timing r = {r * 1e3:.0f} mm: FPSM {tm['fpsm_single_us']:.1f} us per call, "
              f"{tm['fpsm_batched_us_per_rod']:.2f} us per rod batched; fcl collide "
              f"{tm['fcl_collide_us']:.1f} us, distance {tm['fcl_distance_us']:.1f} us")
+    res["certified"] = _certified_rods(certified, oracle, mesh, n, quick)
     return res
+
+
+def _certified_rods(model: FPSM, oracle: _MeshOracle, mesh: Any, n: int,
+                    quick: bool) -> dict[str, Any]:
+    """The certified rod check (:mod:`oralnav.control.rod_check`) on the planner's model
+    (slab envelopes) against fcl: false safes (must be none), false alarms, how far below
+    the exact clearance it certifies, and its speed against fcl's, one rod a call and
+    batched, on the same rods."""
+    t0 = time.perf_counter()
+    rc = RodCheck(model)
+    out: dict[str, Any] = {"rod_check_build_s": time.perf_counter() - t0,
+                           "grid_mm": rc.h * 1e3, "cap_mm": rc.cap * 1e3,
+                           "tol_mm": rc.tol * 1e3, "by_radius": []}
+    for k, r in enumerate(ROD_RADII):
+        T, D, E = _rods(mesh, model, n, np.random.default_rng([4, k, 2]))
+        ex = _exact(oracle, T, E, r)
+        c = rc.clearances(T, E, r)
+        safe = c > 0
+        hit = ex["hit"]
+        exact_c = ex["clear"] - r
+        # how tight: the largest need (exact - slack) the check still certifies
+        ok = (exact_c > 0) & (exact_c + r < rc.cap)
+        tight = [float(exact_c[i] - rc.clearance(T[i], E[i], r, need=0.0))
+                 for i in np.flatnonzero(ok)[:300]]
+        nt = 200 if quick else 500
+        t_c, t_f, t_d = [], [], []
+        for i in range(nt):
+            a = time.perf_counter()
+            rc.clearance(T[i], E[i], r)
+            b = time.perf_counter()
+            oracle.collides(T[i], E[i], r)
+            c2 = time.perf_counter()
+            oracle.clearance(T[i], E[i])
+            t_c.append(b - a)
+            t_f.append(c2 - b)
+            t_d.append(time.perf_counter() - c2)
+        batch = []
+        for _ in range(5 if quick else 20):
+            a = time.perf_counter()
+            rc.clearances(T[:nt], E[:nt], r)
+            batch.append((time.perf_counter() - a) / nt)
+        single, batched = float(np.median(t_c)), float(np.median(batch))
+        coll, dist = float(np.median(t_f)), float(np.median(t_d))
+        row = {"rod_radius_mm": r * 1e3, "rods": n, "exact_safe": int(np.sum(~hit)),
+               "certified_safe": int(safe.sum()), "false_safe": int(np.sum(safe & hit)),
+               "false_alarm": int(np.sum(~safe & ~hit)),
+               "bound_over_exact_max_mm": float(np.max((c - exact_c)[safe]) * 1e3)
+               if safe.any() else None,
+               "slack_to_certify_mm": _stats(np.asarray(tight) * 1e3),
+               "single_us": single * 1e6, "batched_us_per_rod": batched * 1e6,
+               "fcl_collide_us": coll * 1e6, "fcl_distance_us": dist * 1e6,
+               "ratio_fcl_collide_over_single": coll / single,
+               "ratio_fcl_collide_over_batched": coll / batched,
+               "ratio_fcl_distance_over_batched": dist / batched,
+               "target_ratio": SPEED_RATIO_TARGET,
+               "met_batched": bool(coll / batched >= SPEED_RATIO_TARGET),
+               "met_single": bool(coll / single >= SPEED_RATIO_TARGET)}
+        out["by_radius"].append(row)
+        _say(f"  certified r = {r * 1e3:.0f} mm: {row['certified_safe']} certified of "
+             f"{row['exact_safe']} exactly safe, {row['false_safe']} false safe, "
+             f"{row['false_alarm']} false alarms; {row['single_us']:.2f} us a call, "
+             f"{row['batched_us_per_rod']:.2f} us a rod batched; fcl collide "
+             f"{row['fcl_collide_us']:.1f} us ({row['ratio_fcl_collide_over_batched']:.0f}x "
+             f"batched, {row['ratio_fcl_collide_over_single']:.0f}x single)")
+    out["false_safe_total"] = sum(r["false_safe"] for r in out["by_radius"])
+    return out
 
 
 def _chart_rods(doc: dict[str, Any], out: Path) -> Path:
@@ -643,10 +754,26 @@ def _chart_rods(doc: dict[str, Any], out: Path) -> Path:
 
 # -- 4. PSO -----------------------------------------------------------------------------
 
-def _reference(problem: PlacementProblem, n_d: int, n_theta: int) -> dict[str, Any]:
-    """The grid optimum, polished by Nelder-Mead from the best cell."""
+def _constrained(problem: PlacementProblem, check: RodCheck | None
+                 ) -> Callable[[np.ndarray], np.ndarray]:
+    """The objective the planner minimises: eq. 14 plus, on a certified model, the
+    penalty on lines not certified clear (:func:`~oralnav.control.placement.place`)."""
+    if check is None:
+        return problem.evaluate
+    penalty = uncertified_penalty(check, problem)
+    return lambda x: problem.evaluate(x) + penalty(np.atleast_2d(x))
+
+
+def _reference(problem: PlacementProblem, n_d: int, n_theta: int,
+               check: RodCheck | None = None) -> dict[str, Any]:
+    """The grid optimum of the planner's objective, polished by Nelder-Mead from the best
+    cell."""
+    objective = _constrained(problem, check)
     t0 = time.perf_counter()
-    d, th, F = problem.grid(n_d, n_theta)
+    d = np.linspace(*problem.s.d_range, n_d)
+    th = np.linspace(*problem.s.theta_range, n_theta)
+    D, TH = np.meshgrid(d, th)
+    F = objective(np.stack([D.ravel(), TH.ravel()], axis=1)).reshape(TH.shape)
     grid_s = time.perf_counter() - t0
     k = np.unravel_index(int(np.argmin(F)), F.shape)
     x0 = np.array([d[k[1]], th[k[0]]])
@@ -655,12 +782,12 @@ def _reference(problem: PlacementProblem, n_d: int, n_theta: int) -> dict[str, A
     hi = np.array([problem.s.d_range[1], problem.s.theta_range[1]])
     step = np.array([d[1] - d[0], th[1] - th[0]])
     simplex = np.array([x0, x0 + [step[0], 0.0], x0 + [0.0, step[1]]])
-    nm = minimize(lambda x: float(problem.evaluate(np.clip(x, lo, hi)[None])[0]), x0,
+    nm = minimize(lambda x: float(objective(np.clip(x, lo, hi)[None])[0]), x0,
                   method="Nelder-Mead",
                   options={"initial_simplex": simplex, "xatol": 1e-8, "fatol": 1e-12,
                            "maxiter": 2000})
     x = np.clip(nm.x, lo, hi)
-    f = float(problem.evaluate(x[None])[0])
+    f = float(objective(x[None])[0])
     if f > f0:
         x, f = x0, f0
     return {"grid": [n_d, n_theta], "grid_s": grid_s,
@@ -672,13 +799,13 @@ def _reference(problem: PlacementProblem, n_d: int, n_theta: int) -> dict[str, A
 
 
 def _pso_runs(scene: PlanningScene, problem: PlacementProblem, ref: float, seeds: range,
-              particles: int, c0: float) -> list[dict[str, Any]]:
+              particles: int, c0: float, check: RodCheck | None) -> list[dict[str, Any]]:
     out = []
     for seed in seeds:
         s = replace(scene.settings, pso=replace(scene.settings.pso, particles=particles,
                                                 c0=c0, seed=seed))
         t0 = time.perf_counter()
-        p = place(scene.model, scene.hole, s)
+        p = place(scene.model, scene.hole, s, check)
         wall = (time.perf_counter() - t0) * 1e3
         out.append({"particles": particles, "c0": c0, "seed": seed, "time_ms": p.time_ms,
                     "wall_ms": wall, "iterations": p.iterations,
@@ -706,15 +833,16 @@ def pso(cases: dict[str, PlanningScene], quick: bool, out: Path) -> dict[str, An
     res: dict[str, Any] = {"seeds": len(seeds), "gap_ok": GAP_OK, "cases": {}}
     for name, scene in cases.items():
         problem = PlacementProblem(scene.model, scene.hole, scene.settings)
-        place(scene.model, scene.hole, scene.settings)        # warm-up
-        ref = _reference(problem, 401, 361)
+        check = RodCheck(scene.model) if scene.model.certificate is not None else None
+        place(scene.model, scene.hole, scene.settings, check)        # warm-up
+        ref = _reference(problem, 401, 361, check)
         fref = ref["reference"]["objective"]
         _say(f"pso {name}: reference optimum {fref:.6f} at d_T "
              f"{ref['reference']['d_T_mm']:.3f} mm, theta_T "
              f"{ref['reference']['theta_T_deg']:.3f} deg (grid {ref['grid_s']:.1f} s)")
         runs, by_p, by_c0 = [], [], []
         for p in PARTICLES:
-            rs = _pso_runs(scene, problem, fref, seeds, p, scene.settings.pso.c0)
+            rs = _pso_runs(scene, problem, fref, seeds, p, scene.settings.pso.c0, check)
             runs += rs
             by_p.append(_pso_summary(rs))
             s = by_p[-1]
@@ -723,13 +851,13 @@ def pso(cases: dict[str, PlanningScene], quick: bool, out: Path) -> dict[str, An
                  f" gap median {s['gap']['median']:.2e} p90 {s['gap']['p90']:.2e}, "
                  f"{s['within_gap_ok']:.0%} within {GAP_OK:g}")
         for c0 in INERTIAS:
-            rs = _pso_runs(scene, problem, fref, seeds, 30, c0)
+            rs = _pso_runs(scene, problem, fref, seeds, 30, c0, check)
             runs += rs
             by_c0.append(_pso_summary(rs))
             s = by_c0[-1]
             _say(f"  c0 = {c0}: {s['time_ms']['median']:.1f} ms, gap p90 {s['gap']['p90']:.2e},"
                  f" {s['within_gap_ok']:.0%} within {GAP_OK:g}")
-        default = place(scene.model, scene.hole, scene.settings)
+        default = place(scene.model, scene.hole, scene.settings, check)
         contour = objective_contour(problem, default, out / f"planning_contour_{name}.png")
         res["cases"][name] = {
             "scene": str(scene.path), "source": scene.source, **ref,
@@ -794,11 +922,12 @@ def _chart_pso(doc: dict[str, Any], out: Path) -> Path:
 def table2(scene: PlanningScene, quick: bool) -> dict[str, Any]:
     seeds = range(10 if quick else 20)
     rows = []
+    check = RodCheck(scene.model)
     for eq in (14, 21, 22):
         for shrink2 in (True, False):
             s = replace(scene.settings, equation=eq, shrink_line2=shrink2)
             answers = [place(scene.model, scene.hole,
-                             replace(s, pso=replace(s.pso, seed=k))) for k in seeds]
+                             replace(s, pso=replace(s.pso, seed=k)), check) for k in seeds]
             problem = PlacementProblem(scene.model, scene.hole, s)
             d, th, F = problem.grid(241, 181)        # 0.5 mm, 1 degree
             best = float(F.min())

@@ -329,7 +329,7 @@ def certify_lines(check: RodCheck, problem: PlacementProblem, x: np.ndarray,
     return c[:K], c[K:]
 
 
-def _uncertified_penalty(check: RodCheck, problem: PlacementProblem
+def uncertified_penalty(check: RodCheck, problem: PlacementProblem
                          ) -> Callable[[np.ndarray], np.ndarray]:
     def penalty(x: np.ndarray) -> np.ndarray:
         need = problem.s.min_clearance
@@ -356,7 +356,7 @@ def place(model: FPSM, hole: Hole, settings: PlacementSettings | None = None,
     penalty = None
     if certified:
         check = check if check is not None else RodCheck(model)
-        penalty = _uncertified_penalty(check, problem)
+        penalty = uncertified_penalty(check, problem)
     t0 = time.perf_counter()
     res = minimize_pso(problem.evaluate, lo, hi, s.pso, penalty=penalty)
     ms = (time.perf_counter() - t0) * 1e3
