@@ -55,7 +55,7 @@ TOL = 1e-4
 _NEG = -1.0   # stored for grid nodes outside the curve: "tissue" (any negative works)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _grid_values(x0: float, y0: float, h: float, nx: int, ny: int, px: np.ndarray,
                  py: np.ndarray, prad: np.ndarray, cap: float) -> np.ndarray:
     """Distance from each node to the closed polygon (px, py), capped at ``cap``, for
@@ -146,7 +146,7 @@ def _plane(grids: np.ndarray, k: int, x0: float, y0: float, h: float, x: float,
     return best
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _ball(grids: np.ndarray, x0: np.ndarray, y0: np.ndarray, h: float, cells: np.ndarray,
           z_lo: float, cap: float, x: float, y: float, z: float) -> float:
     """The largest radius (m) of a ball about (x, y, z) certified clear of tissue, up to
@@ -183,7 +183,7 @@ def _ball(grids: np.ndarray, x0: np.ndarray, y0: np.ndarray, h: float, cells: np
     return best
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _rod(grids: np.ndarray, x0: np.ndarray, y0: np.ndarray, h: float, cells: np.ndarray,
          z_lo: float, z_hi: float, cap: float, tx: float, ty: float, tz: float, ex: float,
          ey: float, ez: float, r: float, need: float, tol: float) -> float:
@@ -225,7 +225,7 @@ def _rod(grids: np.ndarray, x0: np.ndarray, y0: np.ndarray, h: float, cells: np.
     return low - r
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _rods(grids: np.ndarray, x0: np.ndarray, y0: np.ndarray, h: float, cells: np.ndarray,
           z_lo: float, z_hi: float, cap: float, T: np.ndarray, E: np.ndarray, r: np.ndarray,
           need: float, tol: float) -> np.ndarray:

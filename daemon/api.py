@@ -1,4 +1,5 @@
-"""The operator REST API: status, poses, targets, e-stop, reset, procedure, live telemetry.
+"""The operator REST API: status, poses, targets, e-stop, reset, procedure, guided insertion,
+live telemetry.
 
 :func:`build_app` wraps an :class:`Operations` (the daemon core) in a FastAPI app;
 :func:`serve` runs it with uvicorn inside the daemon's anyio task group. docs/api.md lists
@@ -56,6 +57,8 @@ MAX_TARGET_RADIUS = 0.2
 MAX_TARGETS = 64
 #: a tissue normal shorter than this cannot be normalised (dimensionless)
 MIN_NORMAL_NORM = 1e-6
+#: longest planning-scene path a POST /guide/plan may name (characters)
+MAX_PATH_CHARS = 4096
 
 ProcedureAction = Literal["start", "pause", "resume", "abort"]
 _Vec3 = tuple[Float, Float, Float]
@@ -121,6 +124,31 @@ class EstopBody(_Body):
     reason: str = Field("operator e-stop", max_length=500)
 
 
+_Row4 = tuple[Float, Float, Float, Float]
+
+
+class GuidePlanBody(_Body):
+    """``POST /guide/plan``: plan a guided insertion.
+
+    ``scene``: a planning scene TOML file (docs/formats.md, as ``oralnav plan place
+    --scene`` reads it), absolute or relative to the daemon's working directory.
+    ``T_OM_F``: the registration, the surrogate model's Center frame ``F`` in the opener
+    marker frame ``OM`` (4x4, metres, rigid; checked by the core). ``seed``: overrides the
+    scene's PSO seed.
+    """
+
+    scene: Annotated[str, StringConstraints(min_length=1, max_length=MAX_PATH_CHARS)]
+    T_OM_F: tuple[_Row4, _Row4, _Row4, _Row4]
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1, strict=True)] | None = None
+
+    @field_validator("scene")
+    @classmethod
+    def _no_nul(cls, v: str) -> str:
+        if "\0" in v:
+            raise ValueError("a path cannot hold a NUL character")
+        return v
+
+
 # -- what the daemon core provides -----------------------------------------------------
 class Operations(Protocol):
     """What the API needs from the daemon core. Called on the event loop; none may block.
@@ -140,6 +168,15 @@ class Operations(Protocol):
     def targets(self) -> list[SutureTarget]: ...
     def set_targets(self, targets: list[SutureTarget],
                     who: str) -> None: ...  # StateError (e.g. while RUNNING)
+    # guided insertion (docs/control_loop.md "Guided insertion"); plan_guide blocks (it
+    # fits and places: the API calls it in a worker thread) and returns the plan summary;
+    # ValueError -> 422 (bad scene or plan), StateError -> 409 (no collision-free
+    # placement, or an insertion running)
+    def plan_guide(self, scene: str, T_OM_F: Any, who: str,
+                   seed: int | None = None) -> dict[str, Any]: ...
+    def start_guide(self, who: str) -> None: ...   # StateError when not allowed
+    def stop_guide(self, who: str) -> None: ...    # never refused
+    def guide(self) -> dict[str, Any]: ...         # JSON-able plan summary and live status
 
 
 # -- helpers -----------------------------------------------------------------------------
@@ -314,17 +351,20 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
         audited = await record(request, principal, status, detail, await _body(request))
         return reply(status, {"detail": detail, "errors": errors}, audited)
 
-    async def command(request: Request, who: Principal, name: str, run: Callable[[], None],
-                      *, audit_first: bool = True) -> JSONResponse:
-        """Run one state-changing command: audit check, ``run()``, audit record, reply."""
+    async def command(request: Request, who: Principal, name: str, run: Callable[[], Any],
+                      *, audit_first: bool = True, in_thread: bool = False) -> JSONResponse:
+        """Run one state-changing command: audit check, ``run()``, audit record, reply.
+        ``in_thread``: ``run`` blocks (planning), so it runs in a worker thread. A dict
+        that ``run`` returns is added to the 200 answer."""
         if audit_first:
             why = await audit_ready()
             if why is not None:
                 detail = f"command refused: the audit log cannot be written ({why})"
                 await record(request, who, 503, detail, await _body(request))
                 return reply(503, {"detail": detail}, False)
+        extra: Any = None
         try:
-            run()
+            extra = await anyio.to_thread.run_sync(run) if in_thread else run()
             status, result = 200, "ok"
         except StateError as exc:
             status, result = 409, str(exc) or "not allowed in the current state"
@@ -337,6 +377,8 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
         content: dict[str, Any] = ({"ok": True, "command": name, "by": who.name,
                                     "audited": audited} if status == 200
                                    else {"detail": result})
+        if status == 200 and isinstance(extra, Mapping):
+            content = {**jsonable(extra), **content}
         return reply(status, content, audited)
 
     def read(fn: Callable[[], Any]) -> JSONResponse:
@@ -383,6 +425,28 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
     async def post_targets(request: Request, who: Operator, body: TargetsBody) -> JSONResponse:
         return await command(request, who, "set targets",
                              lambda: ops.set_targets(list(body.targets), who.name))
+
+    @app.get("/guide", summary="The guided-insertion plan and live guidance status")
+    async def get_guide(_: Observer) -> JSONResponse:
+        return read(ops.guide)
+
+    @app.post("/guide/plan", summary="Plan a guided insertion from a planning scene (422 "
+                                     "bad scene, 409 no collision-free placement)")
+    async def post_guide_plan(request: Request, who: Operator,
+                              body: GuidePlanBody) -> JSONResponse:
+        return await command(request, who, "guide plan",
+                             lambda: ops.plan_guide(body.scene, body.T_OM_F, who.name,
+                                                    body.seed),
+                             in_thread=True)
+
+    @app.post("/guide/start", summary="Start the planned guided insertion (GUIDE mode; 409 "
+                                      "when not allowed)")
+    async def post_guide_start(request: Request, who: Operator) -> JSONResponse:
+        return await command(request, who, "guide start", lambda: ops.start_guide(who.name))
+
+    @app.post("/guide/stop", summary="End guidance (HOLD) and clear the plan")
+    async def post_guide_stop(request: Request, who: Operator) -> JSONResponse:
+        return await command(request, who, "guide stop", lambda: ops.stop_guide(who.name))
 
     @app.websocket("/telemetry")
     async def telemetry(ws: WebSocket) -> None:

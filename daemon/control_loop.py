@@ -18,12 +18,17 @@ nothing at all; otherwise steps the servo setpoint toward the goal with the spee
 and sends it, or, when holding, only kicks the arm's watchdog. In GUIDE mode the setpoint
 comes from the admittance inside the virtual fixture (``control/guided_motion.py``), and
 the rod's collision alarm on the surrogate model, or a TCP outside the fixture at the
-start, trips the stop too.
+start, trips the stop too. The plan arrives through ``set_guide`` (in the control process,
+from the plan channel, ``daemon/plan_channel.py``), which refuses a new plan while a
+guided motion runs; any latched stop ends the guided motion, so that a reset never
+resumes it. The status record reports the guidance: active or not, the plan messages
+taken and refused, the rod's clearance and where the head is on the planned axis.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 from collections.abc import Callable
@@ -55,7 +60,7 @@ HIST_BINS = 200
 NAV_DTYPE = np.dtype([
     ("t_pose", "f8"),              # capture time (s, daemon clock) of the pose behind goal
     ("goal", "f8", (4, 4)),        # T_B_tcp goal, m
-    ("mode", "i4"),                # HOLD or MOVE
+    ("mode", "i4"),                # HOLD, MOVE or GUIDE
     ("near_point", "f8", (3,)),    # the patient (opener origin), base frame, m
     ("near_valid", "?"),           # near_point is known: slow down near it
     ("wrist_goal", "f8", (4,)),    # roll, pitch, yaw, jaw (rad)
@@ -94,6 +99,14 @@ STATUS_DTYPE = np.dtype([
     ("err_last", "f8"),            # |period - nominal| of the last period (s)
     ("err_max", "f8"),
     ("hist", "i8", (HIST_BINS + 1,)),
+    # guided insertion (GUIDE mode; docs/control_loop.md, "Guided insertion")
+    ("guide_active", "?"),         # this period ran the admittance (GUIDE, started, no stop)
+    ("guide_planned", "?"),        # a plan is installed
+    ("guide_seq", "i8"),           # the last plan message taken (ControlPort.set_guide)
+    ("guide_refused_seq", "i8"),   # the last plan message refused (0: none)
+    ("guide_rod_distance", "f8"),  # m: the rod's certified clearance at the measured TCP
+    ("guide_to_target", "f8"),     # m: measured head to the target along the axis (> 0 out)
+    ("guide_lateral", "f8"),       # m: measured head's distance from the planned axis
 ])
 
 
@@ -161,11 +174,45 @@ class ControlLoop:
         self._stop_reason = ""
         self._guide: Any = None            # GuidedMotion for GUIDE mode (set_guide)
         self.last_guide: Any = None        # the last GuideStep, for status and tests
+        self._guide_active = False
+        self._guide_seq = 0
+        self._guide_refused = 0
+        self._guide_metrics = (math.nan, math.nan, math.nan)  # rod distance, axial, radial
 
-    def set_guide(self, guide: Any) -> None:
-        """Install the plan's :class:`~oralnav.control.guided_motion.GuidedMotion` (or None).
-        It starts from the measured TCP on the first GUIDE period."""
+    @property
+    def guide_running(self) -> bool:
+        """A guided motion is under way: a plan started, no stop latched, and GUIDE is
+        still what the daemon asks for (read fresh: a HOLD written just now counts)."""
+        return (self._guide is not None and self._guide.started and not self._latched
+                and int(self.nav.read()["mode"]) == GUIDE)
+
+    def set_guide(self, guide: Any, seq: int | None = None) -> bool:
+        """Install the plan's :class:`~oralnav.control.guided_motion.GuidedMotion` (None:
+        remove it); it starts from the measured TCP on the first GUIDE period. ``seq``
+        numbers the request for the status record (default: the next number).
+
+        Refused (False; the running motion and its plan are kept, ``guide_refused_seq``
+        reports ``seq``) while a guided motion runs (:attr:`guide_running`): a plan never
+        changes under the operator's hand. The daemon ends the motion (HOLD) first.
+        """
+        seq = self._guide_seq + 1 if seq is None else int(seq)
+        if self.guide_running:
+            self.refuse_guide(seq, "a guided motion is running")
+            return False
+        if self._guide is not None:
+            self._guide.finish()
         self._guide = guide
+        self._guide_seq = seq
+        self.last_guide = None
+        self._guide_metrics = (math.nan, math.nan, math.nan)
+        return True
+
+    def refuse_guide(self, seq: int, why: str) -> None:
+        """Report plan message ``seq`` as refused (unreadable, or refused by
+        :meth:`set_guide`); nothing else changes."""
+        self._guide_refused = int(seq)
+        log.warning("plan %d refused: %s", seq, why)
+
     # -- one period ------------------------------------------------------------------
     def step(self, now: float, lateness: float = 0.0) -> None:
         """One period at ``now`` (s, loop clock), which started ``lateness`` s after its
@@ -191,6 +238,7 @@ class ControlLoop:
         reason = self._trip_reason(now, arm, wrist, nav, cmd)
         if reason is not None and not self._latched:
             self._latch(now, reason)
+        self._guide_active = False
         if not self._latched:
             self._command(now, arm, nav)
         self._publish(now, arm, wrist, err)
@@ -244,6 +292,10 @@ class ControlLoop:
         """Stop everything once; from here on the loop commands nothing until cleared."""
         self._latched = True
         self._stop_time, self._stop_reason = now, reason
+        if self._guide is not None:
+            # a guided motion never resumes by itself after a reset: the next GUIDE
+            # period starts afresh from the measured TCP
+            self._guide.finish()
         log.warning("control loop stop: %s", reason)
         for dev in (self.arm, self.effector):
             if dev is None:
@@ -301,9 +353,14 @@ class ControlLoop:
             self._latch(now, f"guided motion: {exc}")
             return None
         self.last_guide = step
+        # where the measured head is on the planned axis, in F (for the operator)
+        fx = self._guide.plan.fixture
+        p_F = T_B_F[:3, :3].T @ (arm.T_B_tcp[:3, 3] - T_B_F[:3, 3])
+        self._guide_metrics = (step.rod_distance, fx.axial(p_F), fx.radial(p_F))
         if step.alarm is not None:
             self._latch(now, step.alarm)
             return None
+        self._guide_active = True
         return step.setpoint
 
     def _publish(self, now: float, arm: Any, wrist: Any, err: float) -> None:
@@ -318,7 +375,11 @@ class ControlLoop:
             stop_reason=encode_reason(self._stop_reason),
             stop_count_seen=self._stop_seen, clear_count_seen=self._clear_seen,
             motion_commands=self._motion, t_last_motion=self._t_motion,
-            misses=self._misses, err_last=err, err_max=self._err_max, hist=self._hist)
+            misses=self._misses, err_last=err, err_max=self._err_max, hist=self._hist,
+            guide_active=self._guide_active, guide_planned=self._guide is not None,
+            guide_seq=self._guide_seq, guide_refused_seq=self._guide_refused,
+            guide_rod_distance=self._guide_metrics[0],
+            guide_to_target=self._guide_metrics[1], guide_lateral=self._guide_metrics[2])
 
 
 def run_at_rate(step: Callable[[float, float], None], rate_hz: float,

@@ -5,12 +5,21 @@ builds the arm and end-effector drivers itself (hardware connections belong to t
 process that uses them at 500 Hz), asks for real-time scheduling, and runs
 ``ControlLoop.step`` at the configured rate until told to shut down. The child advances
 simulated drivers by the elapsed time each period (a real arm moves on its own).
+
+Guided-insertion plans reach the child through the plan channel (``daemon/plan_channel.py``,
+a pipe the loop polls without blocking once per period): ``ControlPort.set_guide(plan)``
+sends one, the child builds the :class:`~oralnav.control.guided_motion.GuidedMotion` and
+installs it (``ControlLoop.set_guide``), and the status record acknowledges it
+(``guide_seq``) or reports it refused (``guide_refused_seq``: a guided motion was running,
+or the plan was unreadable). ``ControlPort.set_guide_frame`` then commands GUIDE with the
+patient's model frame, every supervision tick, as ``set_goal`` commands MOVE.
 """
 
 from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -22,6 +31,7 @@ from oralnav.safety.limits import SpeedLimiter
 
 from .control_loop import (
     CMD_DTYPE,
+    GUIDE,
     HOLD,
     MOVE,
     NAV_DTYPE,
@@ -31,6 +41,7 @@ from .control_loop import (
     run_at_rate,
     try_realtime,
 )
+from .plan_channel import ChannelError, PlanInbox, PlanSender, check_size, encode
 from .shm import SharedRecord, encode_reason
 
 log = logging.getLogger(__name__)
@@ -65,10 +76,49 @@ def _build(kind: str, spec: DriverSpec, clock: Any) -> Any:
     return opener(spec.backend, **options)
 
 
-def _child(spec: ProcessSpec, names: dict[str, str], ready: Any) -> None:
-    """Entry point of the control process."""
-    import os
+def _apply_plan(loop: ControlLoop, msg: tuple[int, Any]) -> None:
+    """Install a plan that arrived on the plan channel (the child's side of
+    ``ControlPort.set_guide``); an unreadable or invalid one is refused, never guessed at."""
+    from oralnav.control.guided_motion import GuidedMotion, GuidePlan
 
+    seq, plan = msg
+    if plan is not None and not isinstance(plan, GuidePlan):
+        what = plan if isinstance(plan, Exception) else f"a {type(plan).__name__}"
+        loop.refuse_guide(seq, f"not a GuidePlan ({what})")
+        return
+    try:
+        guide = GuidedMotion(plan) if plan is not None else None
+    except Exception as exc:
+        loop.refuse_guide(seq, f"{type(exc).__name__}: {exc}")
+        return
+    loop.set_guide(guide, seq)
+
+
+def _warm_guidance() -> None:
+    """Before the loop runs: load numba's compiled rod check (``rod_check.warm_up``;
+    compiled on a first run) and take one guided step on a small plan (the imports and
+    first calls a plan needs), none of which may happen in a 2 ms period. About 0.4 s at
+    start when numba's cache is warm."""
+    try:
+        from oralnav.control import rod_check
+        from oralnav.control.fpsm import FPSM
+        from oralnav.control.guided_motion import GuidedMotion, GuidePlan
+
+        rod_check.warm_up()
+
+        T = np.eye(4)   # the head 40 mm up a 20 mm cylinder, its rod (tool x) along +z
+        T[:3, :3] = [[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]
+        T[:3, 3] = [0.0, 0.0, 0.04]
+        guide = GuidedMotion(GuidePlan(T, FPSM.cylinder(0.02, 0.0, 0.05, 3), 0.001))
+        guide.start(T, np.eye(4))
+        guide.step(np.zeros(3), np.eye(4), T, 0.002)
+    except Exception:
+        log.exception("warming up guided motion failed; a first guided period may run late")
+
+
+def _child(spec: ProcessSpec, names: dict[str, str], ready: Any, plans: Any = None) -> None:
+    """Entry point of the control process. ``plans``: the read end of the plan channel
+    (a ``multiprocessing`` connection; its descriptor is read raw, see plan_channel)."""
     from oralnav.drivers.clock import WallClock
 
     logging.basicConfig(level=logging.INFO, format="oralnavd control: %(message)s")
@@ -77,11 +127,16 @@ def _child(spec: ProcessSpec, names: dict[str, str], ready: Any) -> None:
             os.sched_setaffinity(0, {spec.cpu})
         except OSError as exc:
             log.warning("cannot pin to CPU %s: %s", spec.cpu, exc)
+    _warm_guidance()
     sched = try_realtime(spec.realtime_priority)
     nav = SharedRecord(NAV_DTYPE, names["nav"])
     cmd = SharedRecord(CMD_DTYPE, names["cmd"])
     status = SharedRecord(STATUS_DTYPE, names["status"])
     clock = WallClock()
+    inbox = None
+    if plans is not None:
+        inbox = PlanInbox(os.dup(plans.fileno()))
+        plans.close()
     arm = _build("arm", spec.arm, clock)
     eff = _build("effector", spec.effector, clock) if spec.effector else None
     try:
@@ -97,6 +152,10 @@ def _child(spec: ProcessSpec, names: dict[str, str], ready: Any) -> None:
             for d in sims:  # simulated physics: the devices move by the elapsed time
                 d.advance(now - last[0])
             last[0] = now
+            if inbox is not None:  # before the step: its cost counts in this period
+                msg = inbox.poll()
+                if msg is not None:
+                    _apply_plan(loop, msg)
             loop.step(now, lateness)
 
         ready.set()
@@ -120,6 +179,8 @@ def _child(spec: ProcessSpec, names: dict[str, str], ready: Any) -> None:
                 log.exception("closing %r", d)
         for r in (nav, cmd, status):
             r.close()
+        if inbox is not None:
+            inbox.close()
 
 
 class ControlPort:
@@ -133,6 +194,9 @@ class ControlPort:
         self.status: SharedRecord | None = None
         self._stops = 0
         self._clears = 0
+        self._guide_sent = 0            # the last plan message's number (set_guide)
+        #: size (bytes) of the last plan message, 0 where no pipe carries it
+        self.guide_bytes = 0
 
     def _open_records(self) -> None:
         self.nav = SharedRecord(NAV_DTYPE)
@@ -182,6 +246,63 @@ class ControlPort:
                        wrist_goal=wrist if wrist is not None else np.zeros(4),
                        wrist_valid=wrist is not None)
 
+    def set_guide_frame(self, T_B_F: np.ndarray, t_pose: float, *,
+                        near_point: np.ndarray | None = None) -> None:
+        """Command GUIDE: the loop runs the installed plan's admittance with the surrogate
+        model's frame ``T_B_F`` (4x4, m, robot base) computed from the pose captured at
+        ``t_pose`` (s, daemon clock; the loop's stale-pose watchdog reads it as for MOVE).
+        ``near_point``: the patient (base frame, m) for the near-patient speed limit.
+        Publish it every supervision tick, as ``set_goal`` is for MOVE."""
+        if self.nav is None:
+            return
+        self.nav.write(T_B_F=T_B_F, t_pose=t_pose, mode=GUIDE,
+                       near_point=near_point if near_point is not None else np.zeros(3),
+                       near_valid=near_point is not None, wrist_valid=False)
+
+    def guide_reply(self, seq: int) -> str | None:
+        """What the loop did with plan message ``seq``: ``"taken"``, ``"refused"``, or
+        None while it has not read it yet."""
+        st = self.read_status()
+        if st is None or seq <= 0:
+            return None
+        if int(st["guide_refused_seq"]) == seq:
+            return "refused"
+        if int(st["guide_seq"]) >= seq:
+            return "taken"
+        return None
+
+    def guide_pending(self) -> bool:
+        """A plan message is on its way that the loop has neither taken nor refused."""
+        st = self.read_status()
+        return st is not None and self._guide_sent > max(int(st["guide_seq"]),
+                                                         int(st["guide_refused_seq"]))
+
+    def check_guide(self, plan: Any) -> None:
+        """Raise :class:`~oralnav.daemon.plan_channel.ChannelError` (a ``RuntimeError``)
+        when ``plan`` cannot be sent (too large for the channel). Sends nothing."""
+
+    def flush_guide(self) -> None:
+        """Write more of a plan message the pipe could not take at once; never blocks.
+        The daemon calls it every supervision tick."""
+
+    def set_guide(self, plan: Any) -> int:
+        """Send ``plan`` (a :class:`~oralnav.control.guided_motion.GuidePlan`, or None to
+        remove it) to the loop; returns its message number. Never blocks: what the pipe
+        does not take now goes with :meth:`flush_guide`. The loop takes it unless a guided
+        motion is running there (``guide_reply``): switch to HOLD first.
+        :class:`ChannelError` when the previous message is still on its way or the plan
+        cannot be sent; nothing is sent then."""
+        if self.guide_pending():
+            raise ChannelError("the control loop has not read the previous plan message "
+                               "yet; try again")
+        seq = self._guide_sent + 1
+        self._deliver(seq, plan)
+        self._guide_sent = seq
+        return seq
+
+    def _deliver(self, seq: int, plan: Any) -> None:
+        raise NotImplementedError
+
     def read_status(self) -> np.void | None:
         return None if self.status is None else self.status.read()
 
@@ -193,6 +314,7 @@ class ControlProcess(ControlPort):
         super().__init__()
         self.spec = spec
         self._proc: mp.process.BaseProcess | None = None
+        self._plans: PlanSender | None = None
 
     async def start(self, timeout: float = 20.0) -> None:
         """Create the records, spawn the child, and wait until its loop runs."""
@@ -200,9 +322,15 @@ class ControlProcess(ControlPort):
         ctx = mp.get_context("spawn")  # no inherited threads or locks from the daemon
         ready = ctx.Event()
         names = {"nav": self.nav.name, "cmd": self.cmd.name, "status": self.status.name}
-        self._proc = ctx.Process(target=_child, args=(self.spec, names, ready),
+        reader, writer = ctx.Pipe(duplex=False)
+        self._plans = PlanSender(os.dup(writer.fileno()))
+        writer.close()
+        self._proc = ctx.Process(target=_child, args=(self.spec, names, ready, reader),
                                  name="oralnavd-control", daemon=True)
-        self._proc.start()
+        try:
+            self._proc.start()
+        finally:
+            reader.close()  # the child has its own copy
         deadline = time.monotonic() + timeout
         # "runs" means its first period has published a status: the child signals ready
         # just before its first period, and a supervisor reading the status record before
@@ -219,6 +347,20 @@ class ControlProcess(ControlPort):
     def alive(self) -> bool:
         return self._proc is not None and self._proc.is_alive()
 
+    def check_guide(self, plan: Any) -> None:
+        check_size(len(encode(1, plan)))
+
+    def flush_guide(self) -> None:
+        if self._plans is not None:
+            self._plans.flush()
+
+    def _deliver(self, seq: int, plan: Any) -> None:
+        if self._plans is None or not self.alive:
+            raise ChannelError("the control process is not running")
+        frame = encode(seq, plan)
+        self._plans.send(frame)
+        self.guide_bytes = len(frame)
+
     async def close(self, timeout: float = 5.0) -> None:
         """Shut the child down (it stops the arm first); idempotent."""
         proc, self._proc = self._proc, None
@@ -232,6 +374,9 @@ class ControlProcess(ControlPort):
                 log.error("control process did not exit in %g s; terminating it", timeout)
                 proc.terminate()
                 proc.join(1.0)
+        if self._plans is not None:
+            self._plans.close()
+            self._plans = None
         self._close_records()
 
 
@@ -253,6 +398,12 @@ class InProcessControl(ControlPort):
     @property
     def alive(self) -> bool:
         return not self._closed
+
+    def _deliver(self, seq: int, plan: Any) -> None:
+        # what the child does with a message, at once: same rules, no pipe
+        if self._closed:
+            raise ChannelError("the control loop is closed")
+        _apply_plan(self.loop, (seq, plan))
 
     def step(self, now: float, lateness: float = 0.0) -> None:
         """One period at ``now``; ``lateness`` simulates a period that started late."""

@@ -125,6 +125,8 @@ async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
         nav = NavigationTask(core, cell, SimCameraSet(cell.camera_names, cell), probe,
                              calibration=nav_calibration(cfg.calibrations, cell),
                              progress=lambda msg: _log(msg))
+        # guided insertion places the tracked opener in the base with the same hand-eye
+        core.set_hand_eye(nav.calibration.T_B_C)
     keep_off_control_cpu(s.control.cpu)
     await control.start()
     await inputs.start()

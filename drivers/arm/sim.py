@@ -26,6 +26,11 @@ the safety layer). Fault injections for tests: :meth:`inject_protective_stop`,
 command until its watchdog stops it, as a real one would), :meth:`reconnect`,
 :meth:`clear_protective_stop`, :meth:`clear_emergency_stop`, and :meth:`freeze` (the reported
 state stops updating: a silent driver).
+
+The force sensor reads what :meth:`SimArm.apply_wrench` last set, or, with the
+``force_source`` option, what that callable returns for the state each :meth:`advance`
+reaches: a scripted operator's hand inside a process the test cannot reach into (the
+control process builds its own drivers).
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ import collections
 import logging
 import math
 import threading
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -100,6 +106,11 @@ class SimArm(Arm):
         watchdog_timeout: seconds without a motion command or kick before the arm stops.
         max_step: longest integration step, seconds; ``advance`` subdivides longer periods.
         log_size: entries kept in :attr:`command_log` (oldest dropped).
+        force_source: optional ``f(t, T_B_tcp) -> wrench``, called at the end of each
+            :meth:`advance` with the clock time (s) and the new TCP pose (4x4, m); its
+            3 or 6 values (N, N m, base frame) become the force sensor's reading, as
+            :meth:`apply_wrench` would set them. Must be picklable to reach a control
+            process. A value that is not 3 or 6 finite numbers reads as zero (logged).
     """
 
     def __init__(
@@ -114,6 +125,7 @@ class SimArm(Arm):
         watchdog_timeout: float = 0.05,
         max_step: float = 0.002,
         log_size: int = 10_000,
+        force_source: Callable[[float, np.ndarray], np.ndarray] | None = None,
     ) -> None:
         super().__init__(name)
         self.clock: Clock = WallClock() if clock is None else clock
@@ -131,6 +143,9 @@ class SimArm(Arm):
         self.max_step = _limit(max_step, "max_step", "seconds")
         if isinstance(log_size, bool) or not isinstance(log_size, int) or log_size < 1:
             raise DriverInitError(f"log_size must be an integer >= 1, got {log_size!r}")
+        if force_source is not None and not callable(force_source):
+            raise DriverInitError(f"force_source must be callable, got {force_source!r}")
+        self._force_source = force_source
 
         self._lock = threading.Lock()
         # Physical state (base frame).
@@ -301,6 +316,24 @@ class SimArm(Arm):
                 self._snap_T = T
                 self._snap_twist = np.concatenate([self._v, self._w])
                 self._snap_time = now
+            T_now = self._snap_T
+        if self._force_source is not None:  # called outside the lock: it is user code
+            self._read_force_source(now, T_now)
+
+    def _read_force_source(self, now: float, T_B_tcp: np.ndarray) -> None:
+        try:
+            w = np.asarray(self._force_source(now, T_B_tcp.copy()), dtype=float).reshape(-1)
+        except Exception:
+            log.exception("arm %r: force_source raised; the sensor reads zero", self.name)
+            w = np.zeros(6)
+        if w.size == 3:
+            w = np.concatenate([w, np.zeros(3)])
+        if w.shape != (6,) or not np.all(np.isfinite(w)):
+            log.error("arm %r: force_source gave %r, not 3 or 6 finite numbers; the sensor "
+                      "reads zero", self.name, w)
+            w = np.zeros(6)
+        with self._lock:
+            self._wrench = w
 
     def _step(self, h: float) -> None:
         # One semi-implicit Euler step: velocities move toward their set points within the

@@ -12,6 +12,7 @@ import contextlib
 import json
 import signal
 import socket
+import threading
 import time
 from collections.abc import AsyncIterator
 from typing import Any
@@ -26,6 +27,7 @@ from oralnav.daemon import audit as audit_mod
 from oralnav.daemon.api import SutureTarget, build_app, jsonable, serve
 from oralnav.daemon.audit import AuditLog
 from oralnav.daemon.auth import TokenStore
+from oralnav.daemon.guidance import GuidePlanError
 from oralnav.safety.errors import LimitError, StateError
 
 
@@ -80,11 +82,50 @@ class FakeOps:
         self.calls.append(("set_targets", who))
         self.target_list = list(targets)
 
+    # guided insertion: "bad" scenes fail validation, "unsafe" ones have no safe placement
+    plan: dict[str, Any] | None = None
+    guiding = False
+    plan_thread: threading.Thread | None = None
+
+    def plan_guide(self, scene: str, T_OM_F: Any, who: str,
+                   seed: int | None = None) -> dict[str, Any]:
+        self.plan_thread = threading.current_thread()
+        if "bad" in scene:
+            raise GuidePlanError(f"planning scene: {scene}: [hole] axis: field required")
+        if "unsafe" in scene:
+            raise StateError(f"no collision-free placement in {scene}: nothing was armed")
+        if self.guiding:
+            raise StateError("cannot plan while a guided insertion is running")
+        self.calls.append(("plan_guide", scene, who, seed))
+        self.plan = {"scene": scene, "T_OM_F": np.asarray(T_OM_F),
+                     "placement": {"d_T": 0.0655, "collision_free": True},
+                     "fixture": {"frame": "F", "target": np.array([0.0, 0.0155, 0.05]),
+                                 "direction": np.array([0.0, 0.0, 1.0])}}
+        return self.plan
+
+    def start_guide(self, who: str) -> None:
+        if self.plan is None:
+            raise StateError("no insertion plan: POST /guide/plan first")
+        if self.state != "IDLE" or self.guiding:
+            raise StateError(f"cannot start guidance while {self.state}")
+        self.calls.append(("start_guide", who))
+        self.guiding = True
+
+    def stop_guide(self, who: str) -> None:
+        self.calls.append(("stop_guide", who))
+        self.guiding, self.plan = False, None
+
+    def guide(self) -> dict[str, Any]:
+        return {"phase": "active" if self.guiding else "idle", "plan": self.plan,
+                "rod_distance_m": float("nan")}
+
 
 POSTS = ["/estop", "/reset", "/procedure/start", "/procedure/pause", "/procedure/resume",
-         "/procedure/abort", "/targets"]
+         "/procedure/abort", "/targets", "/guide/plan", "/guide/start", "/guide/stop"]
 GOOD_TARGETS = {"targets": [{"name": "s1", "p_OM": [0.01, 0.02, 0.0]},
                             {"name": "s2", "p_OM": [0.0, -0.01, 0.005], "n_OM": [0, 0, 2]}]}
+EYE4 = np.eye(4).tolist()
+GOOD_PLAN = {"scene": "config/examples/cylinder_case.toml", "T_OM_F": EYE4, "seed": 3}
 
 
 @pytest.fixture
@@ -120,7 +161,7 @@ def audit_lines(rig) -> list[dict]:
 
 
 def body_for(path: str) -> dict | None:
-    return GOOD_TARGETS if path == "/targets" else None
+    return {"/targets": GOOD_TARGETS, "/guide/plan": GOOD_PLAN}.get(path)
 
 
 # -- roles -------------------------------------------------------------------------------
@@ -130,7 +171,7 @@ async def test_health_needs_no_token(client):
     assert r.status_code == 200 and r.json()["ok"] is True
 
 
-@pytest.mark.parametrize("path", ["/status", "/poses", "/targets"])
+@pytest.mark.parametrize("path", ["/status", "/poses", "/targets", "/guide"])
 async def test_reads_need_a_valid_token(client, rig, path):
     """issue 4 REST: GETs answer 401 with WWW-Authenticate: Bearer without a token or with
     an unknown one, and 200 for an observer."""
@@ -156,7 +197,8 @@ async def test_reads_return_plain_json(client, rig):
 def test_every_post_route_is_covered(rig):
     """issue 4 REST: the role tests below cover every POST route the app has."""
     posts = {r.path for r in rig.app.routes if "POST" in getattr(r, "methods", ())}
-    assert posts == {"/estop", "/reset", "/procedure/{action}", "/targets"}
+    assert posts == {"/estop", "/reset", "/procedure/{action}", "/targets", "/guide/plan",
+                     "/guide/start", "/guide/stop"}
 
 
 @pytest.mark.parametrize("path", POSTS)
@@ -323,6 +365,84 @@ async def test_unknown_procedure_action_is_422(client, rig):
     r = await client.post("/procedure/launch", headers=rig.op)
     assert r.status_code == 422 and "'start'" in r.json()["detail"]
     assert rig.ops.calls == []
+
+
+# -- guided insertion ------------------------------------------------------------------
+async def test_guide_plan_start_stop_over_rest(client, rig):
+    """issue 6, item 5: POST /guide/plan answers the placement and the fixture's target
+    and direction (planning runs in a worker thread, off the event loop); GET /guide
+    (observer) shows the plan; start and stop reach the core with the operator's name;
+    a new plan while guiding is 409 and keeps the running one; every command is
+    audited."""
+    r = await client.post("/guide/plan", headers=rig.op, json=GOOD_PLAN)
+    assert r.status_code == 200, r.text
+    doc = r.json()
+    assert doc["ok"] is True and doc["command"] == "guide plan" and doc["by"] == "operator"
+    assert doc["placement"] == {"d_T": 0.0655, "collision_free": True}
+    assert doc["fixture"]["target"] == [0.0, 0.0155, 0.05]
+    assert doc["fixture"]["direction"] == [0.0, 0.0, 1.0]
+    assert rig.ops.plan_thread is not threading.main_thread()
+    assert rig.ops.calls == [("plan_guide", GOOD_PLAN["scene"], "operator", 3)]
+    g = (await client.get("/guide", headers=rig.obs)).json()
+    assert g["phase"] == "idle" and g["plan"]["T_OM_F"] == EYE4
+    assert g["rod_distance_m"] is None                      # NaN -> null
+    assert (await client.post("/guide/start", headers=rig.op)).status_code == 200
+    assert (await client.get("/guide", headers=rig.obs)).json()["phase"] == "active"
+    r = await client.post("/guide/plan", headers=rig.op, json=GOOD_PLAN | {"seed": 4})
+    assert r.status_code == 409 and "running" in r.json()["detail"]
+    assert rig.ops.plan["scene"] == GOOD_PLAN["scene"]
+    assert (await client.post("/guide/stop", headers=rig.op)).status_code == 200
+    assert rig.ops.calls[1:] == [("start_guide", "operator"), ("stop_guide", "operator")]
+    assert (await client.get("/guide", headers=rig.obs)).json()["plan"] is None
+    recs = audit_lines(rig)
+    assert [(x["path"], x["status"]) for x in recs] == [
+        ("/guide/plan", 200), ("/guide/start", 200), ("/guide/plan", 409),
+        ("/guide/stop", 200)]
+    assert '"scene":"config/examples/cylinder_case.toml"' in recs[0]["body"]
+
+
+BAD_PLANS = {
+    "no registration": ({"scene": "s.toml"}, "T_OM_F"),
+    "3x3 registration": ({"scene": "s.toml", "T_OM_F": np.eye(3).tolist()}, "T_OM_F"),
+    "NaN in registration": (b'{"scene": "s.toml", "T_OM_F": [[NaN, 0, 0, 0], [0, 1, 0, 0], '
+                            b'[0, 0, 1, 0], [0, 0, 0, 1]]}', "T_OM_F[0][0]"),
+    "string number": ({"scene": "s.toml", "T_OM_F": [["1", 0, 0, 0]] + EYE4[1:]},
+                      "T_OM_F[0][0]"),
+    "negative seed": ({"scene": "s.toml", "T_OM_F": EYE4, "seed": -1}, "seed"),
+    "float seed": ({"scene": "s.toml", "T_OM_F": EYE4, "seed": 1.5}, "seed"),
+    "empty scene": ({"scene": "", "T_OM_F": EYE4}, "scene"),
+    "unknown key": ({"scene": "s.toml", "T_OM_F": EYE4, "equation": 22}, "equation"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_PLANS))
+async def test_bad_guide_plan_bodies_are_422(client, rig, case):
+    """issue 6, item 5: a malformed POST /guide/plan body is 422 naming where; the core is
+    not called and the previous plan stays."""
+    body, where = BAD_PLANS[case]
+    kw = {"content": body, "headers": rig.op | {"content-type": "application/json"}} \
+        if isinstance(body, bytes) else {"json": body, "headers": rig.op}
+    r = await client.post("/guide/plan", **kw)
+    assert r.status_code == 422, r.text
+    assert any(e["where"].startswith(where) for e in r.json()["errors"]), r.json()
+    assert rig.ops.calls == [] and rig.ops.plan is None
+    assert audit_lines(rig)[-1]["status"] == 422
+
+
+async def test_guide_refusals_from_the_core(client, rig):
+    """issue 6, item 5: a bad scene (GuidePlanError) is 422 with the loader's message; no
+    collision-free placement is 409; start without a plan is 409; none changes the
+    plan the core holds."""
+    r = await client.post("/guide/plan", headers=rig.op, json=GOOD_PLAN | {"scene": "bad.toml"})
+    assert r.status_code == 422 and "[hole] axis" in r.json()["detail"]
+    r = await client.post("/guide/start", headers=rig.op)
+    assert r.status_code == 409 and "POST /guide/plan" in r.json()["detail"]
+    assert (await client.post("/guide/plan", headers=rig.op, json=GOOD_PLAN)).status_code == 200
+    r = await client.post("/guide/plan", headers=rig.op,
+                          json=GOOD_PLAN | {"scene": "unsafe.toml"})
+    assert r.status_code == 409 and "collision-free" in r.json()["detail"]
+    assert rig.ops.plan["scene"] == GOOD_PLAN["scene"]
+    assert [x["status"] for x in audit_lines(rig)] == [422, 409, 200, 409]
 
 
 # -- audit ---------------------------------------------------------------------------------

@@ -371,3 +371,32 @@ async def test_control_thread_and_simulation_can_share_the_arm():
             thread.join()
         assert not errors
         assert np.linalg.norm(arm.state().T_B_tcp[:3, 3] - target[:3, 3]) < 1e-6
+
+
+def _push_along_x(t: float, T_B_tcp: np.ndarray) -> np.ndarray:
+    """A force source for the test below: 2 N per second of clock time, along base x,
+    and the TCP's height as the torque about z (so the pose it is given shows)."""
+    return np.array([2.0 * t, 0.0, 0.0, 0.0, 0.0, T_B_tcp[2, 3]])
+
+
+async def test_force_source_feeds_the_force_sensor(caplog):
+    """issue 6, item 5 (GUIDE on the control process): the ``force_source`` option is what
+    the force sensor reads after each advance, given the clock time and the new TCP pose;
+    a bad value (wrong size, non-finite, an exception) reads as zero and is logged; the
+    option must be callable."""
+    arm, clock = make_arm(force_source=_push_along_x)
+    async with arm:
+        assert np.all(arm.state().tcp_force == 0.0)        # nothing before an advance
+        clock.advance(0.5)
+        arm.advance(0.5)
+        f = arm.state().tcp_force
+        assert f[0] == pytest.approx(2.0 * clock.now()) and f[5] == pytest.approx(0.3)
+        for bad in (lambda t, T: [1.0, 2.0], lambda t, T: [math.nan, 0.0, 0.0],
+                    lambda t, T: 1 / 0):
+            arm._force_source = bad
+            with caplog.at_level(logging.ERROR):
+                tick(arm, clock)
+            assert np.all(arm.state().tcp_force == 0.0)
+        assert "force_source" in caplog.text
+    with pytest.raises(DriverInitError, match="force_source"):
+        SimArm(force_source=3.0)
