@@ -24,12 +24,12 @@ Two choices differ from the paper's text, and both are charted (``oralnav bench 
 - Eq. 22 squares ``f_safe``, which would score a collision (f < 0) like clearance. The
   variant here keeps the sign, ``sgn(f) f^2``, so it still fails only as the paper says.
 
-The search scores placements with the paper's queries; the result is then certified
-(:mod:`oralnav.control.rod_check`) when the model carries a certificate: both lines, as
-rods of the rod radius from their start out through the model's front, must be clear of
-the tissue by a bound that holds for the mesh itself, not only for the surrogate's
-rays. ``collision_free`` needs both; a model without a certificate is searched as the
-paper does and its placement says ``certified=False``.
+The search scores placements with the paper's queries. When the model carries a
+certificate, placements whose lines (as rods of the rod radius from their start out
+through the model's front) are not certified ``min_clearance`` clear of the tissue
+(:mod:`oralnav.control.rod_check`, a bound that holds for the mesh itself) are penalised
+during the search, and ``collision_free`` needs both lines certified. A model without a
+certificate is searched as the paper does and its placement says ``certified=False``.
 
 Objective values use distances in millimetres, as the paper's do (its Fig. 17 optimum is
 -2.611), so they compare with its figures; every other length here is in metres.
@@ -365,7 +365,7 @@ def place(model: FPSM, hole: Hole, settings: PlacementSettings | None = None,
     reason = "" if ok else (f"no placement clears the surrogate model: f_safe of line1 "
                             f"{f1[0] * 1e3:.2f} mm, line2 {f2[0] * 1e3:.2f} mm")
     c1 = c2 = math.nan
-    if check is not None and certified:
+    if certified:
         cc1, cc2 = certify_lines(check, problem, res.x[None], s.min_clearance)
         c1, c2 = float(cc1[0]), float(cc2[0])
         if ok and not min(c1, c2) >= s.min_clearance:

@@ -274,9 +274,9 @@ class RodCheck:
         grids = np.empty((M, n, n))
         for j in range(M):
             g = _grid_values(-extent, -extent, grid, n, n, cx[j], cy[j], rad[j], cap)
-            slack = exc[j] + self.chord_error
-            grids[j] = np.where(g > 0, np.maximum(g - slack, 0.0), _NEG)
-        grids[grids == 0.0] = _NEG       # pulled in to nothing: no clearance to certify
+            # pulled in by excursion and chord error; nothing left: no clearance to certify
+            v = g - (exc[j] + self.chord_error)
+            grids[j] = np.where((g > 0) & (v > 0), v, _NEG)
         # float32 halves the cache footprint; rounded down by 10 nm so no value grows
         self.grids = np.where(grids > 0, grids - 1e-8, _NEG).astype(np.float32)
         reach = cert.reach if math.isfinite(cert.reach) else 1e3

@@ -140,11 +140,9 @@ def plan_insertion(scene: str | Path, T_OM_F: Any, who: str,
         raise GuidePlanError(f"placement in {path}: {exc}") from None
     if not p.collision_free:
         raise NoSafePlacement(
-            f"no collision-free placement in {path}: the best found (d_T = "
-            f"{p.d_T * 1e3:.1f} mm, theta_T = {math.degrees(p.theta_T):.1f} deg, f_safe "
-            f"{p.f_safe_line1 * 1e3:.2f} / {p.f_safe_line2 * 1e3:.2f} mm) collides with the "
-            "model; nothing was armed. Move the hole, widen the search or use a thinner "
-            "instrument", p)
+            f"no collision-free placement in {path}: {p.reason} (best found: d_T = "
+            f"{p.d_T * 1e3:.1f} mm, theta_T = {math.degrees(p.theta_T):.1f} deg); nothing "
+            "was armed. Move the hole, widen the search or use a thinner instrument", p)
     try:
         plan = GuidePlan(p.T_C_tool, sc.model, settings.rod_radius, check=check)
     except ControlError as exc:

@@ -97,9 +97,8 @@ def cmd_place(args: argparse.Namespace) -> int:
               f"deg, objective {p.objective:.4f} (eq. {s.equation}), {p.iterations} "
               f"iterations in {p.time_ms:.1f} ms")
     if not p.collision_free:
-        _progress("oralnav: no collision-free placement: every candidate the swarm tried "
-                  "collides with the model; move the hole, widen the search box or use a "
-                  "thinner instrument")
+        _progress(f"oralnav: no collision-free placement: {p.reason}; move the hole, widen "
+                  "the search box or use a thinner instrument")
         return NO_SAFE_PLACEMENT
     return 0
 
