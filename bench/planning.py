@@ -798,6 +798,26 @@ def _reference(problem: PlacementProblem, n_d: int, n_theta: int,
             "grid_cells_within_gap_ok": int(np.sum(F <= f + GAP_OK))}
 
 
+def _time_objective(problem: PlacementProblem, particles: int) -> dict[str, float]:
+    """One swarm's objective (us, median of 2000): the compiled kernel the search runs
+    and the numpy reference it replaced, on the same random placements."""
+    s = problem.s
+    rng = np.random.default_rng(5)
+    x = np.column_stack([rng.uniform(*s.d_range, particles), rng.uniform(*s.theta_range,
+                                                                         particles)])
+    out = {}
+    for name, f in (("compiled", problem.evaluate), ("numpy", problem.evaluate_numpy)):
+        f(x)
+        t = []
+        for _ in range(2000):
+            t0 = time.perf_counter()
+            f(x)
+            t.append(time.perf_counter() - t0)
+        out[name] = float(np.median(t)) * 1e6
+    out["ratio"] = out["numpy"] / out["compiled"]
+    return out
+
+
 def _pso_runs(scene: PlanningScene, problem: PlacementProblem, ref: float, seeds: range,
               particles: int, c0: float, check: RodCheck | None) -> list[dict[str, Any]]:
     out = []
@@ -835,6 +855,10 @@ def pso(cases: dict[str, PlanningScene], quick: bool, out: Path) -> dict[str, An
         problem = PlacementProblem(scene.model, scene.hole, scene.settings)
         check = RodCheck(scene.model) if scene.model.certificate is not None else None
         place(scene.model, scene.hole, scene.settings, check)        # warm-up
+        objective_us = _time_objective(problem, scene.settings.pso.particles)
+        _say(f"pso {name}: objective of {scene.settings.pso.particles} particles "
+             f"{objective_us['compiled']:.1f} us compiled, {objective_us['numpy']:.1f} us "
+             "numpy")
         ref = _reference(problem, 401, 361, check)
         fref = ref["reference"]["objective"]
         _say(f"pso {name}: reference optimum {fref:.6f} at d_T "
@@ -868,6 +892,7 @@ def pso(cases: dict[str, PlanningScene], quick: bool, out: Path) -> dict[str, An
                         "iterations": default.iterations,
                         "collision_free": default.collision_free,
                         "gap": default.objective - fref},
+            "objective_us": objective_us,
             "by_particles": by_p, "by_c0": by_c0, "runs": runs, "contour": str(contour)}
     at30 = [next(s for s in c["by_particles"] if s["particles"] == 30)
             for c in res["cases"].values()]

@@ -310,7 +310,9 @@ class FPSM:
         object.__setattr__(self, "rho", rho)
         taps = np.stack([np.roll(rho, -s, axis=1) for s in (-1, 0, 1, 2)], axis=2)
         # per slice and segment, the coefficients of 1, t, t^2, t^3 (M, N, 4)
-        object.__setattr__(self, "_coef", taps @ pc._WEIGHTS)
+        coef = taps @ pc._WEIGHTS
+        coef.setflags(write=False)
+        object.__setattr__(self, "_coef", coef)
 
     @classmethod
     def cylinder(cls, radius: float, z_min: float, z_max: float, slices: int,
@@ -327,6 +329,12 @@ class FPSM:
     @property
     def slices(self) -> int:
         return self.z.size
+
+    @property
+    def coefficients(self) -> np.ndarray:
+        """(M, N, 4) read-only: per slice and segment ``k``, the coefficients of 1, t, t^2,
+        t^3 of ``rho`` in ``t = theta N / 2 pi - k`` (m), for compiled queries."""
+        return self._coef
 
     @property
     def points(self) -> int:

@@ -42,6 +42,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from .errors import PlanningError
@@ -160,6 +161,88 @@ def _line_parts(model: FPSM, P: np.ndarray, D: np.ndarray,
     return dT, d[2 * K:].reshape(K, M) - shrink[:, None], ok
 
 
+@numba.njit(cache=True, inline="always")
+def _slice_distance(coef: np.ndarray, j: int, x: float, y: float) -> float:
+    """Eq. 10 on slice ``j``: ``rho_j(theta) - |(x, y)|`` (m), no shrink; ``coef`` is the
+    model's (M, N, 4) Hermite power coefficients (:meth:`FPSM.radius_at`'s)."""
+    n = coef.shape[1]
+    th = math.atan2(y, x)
+    if th < 0.0:
+        th += 2.0 * math.pi
+    u = th * (n / (2.0 * math.pi))
+    k = min(int(u), n - 1)
+    t = u - k
+    c = coef[j, k]
+    return ((c[3] * t + c[2]) * t + c[1]) * t + c[0] - math.hypot(x, y)
+
+
+@numba.njit(cache=True, inline="always")
+def _line_f(coef: np.ndarray, z: np.ndarray, px: float, py: float, pz: float, dx: float,
+            dy: float, dz: float, shrink: float, lam_avg: float, lam_min: float
+            ) -> tuple[float, int]:
+    """Eq. 13 of one line (m) and its crossing count: :func:`_line_parts` and
+    :meth:`PlacementProblem.line_values` for a single line, compiled."""
+    M = z.size
+    # the start (eq. 11): between its two neighbouring slices; outside the slice range
+    # never positive (FPSM.safe_distance)
+    zc = min(max(pz, z[0]), z[M - 1])
+    j0 = 0
+    while j0 < M - 2 and z[j0 + 1] <= zc:
+        j0 += 1
+    d1 = _slice_distance(coef, j0, px, py)
+    d2 = _slice_distance(coef, j0 + 1, px, py)
+    w = (zc - z[j0]) / (z[j0 + 1] - z[j0])
+    dT = d1 + (d2 - d1) * w - shrink
+    beyond = abs(pz - zc)
+    if beyond > 0.0:
+        dT = min(dT, 0.0) - beyond
+    dmin, total, m = dT, dT, 0
+    if dz != 0.0:
+        for j in range(M):
+            t = (z[j] - pz) / dz
+            if t > 0.0 and math.isfinite(t):       # the crossings ahead of the start
+                d = _slice_distance(coef, j, px + t * dx, py + t * dy) - shrink
+                total += d
+                m += 1
+                if d < dmin:
+                    dmin = d
+    if dmin > 0.0:
+        return lam_avg * total / (m + 1) + lam_min * dmin, m
+    return lam_min * dmin, m
+
+
+@numba.njit(cache=True, nogil=True)
+def _objective(coef: np.ndarray, z: np.ndarray, T_ch: np.ndarray, x: np.ndarray,
+               rod_radius: float, implant_length: float, shrink2: float, lam_avg: float,
+               lam_min: float, equation: int) -> np.ndarray:
+    """:meth:`PlacementProblem.evaluate` compiled: eq. 19's lines for each placement
+    ``x`` (K, 2), eq. 13 on both, eq. 14 (21, 22) of the pair, in the paper's mm."""
+    out = np.empty(x.shape[0])
+    for i in range(x.shape[0]):
+        d_T, th = x[i, 0], x[i, 1]
+        c, s = math.cos(th), math.sin(th)
+        # x_tool = R @ (cos th, sin th, 0); P1 = t + d_T R_z + r x_tool; P2 = P1 - l R_z
+        vx = T_ch[0, 0] * c + T_ch[0, 1] * s
+        vy = T_ch[1, 0] * c + T_ch[1, 1] * s
+        vz = T_ch[2, 0] * c + T_ch[2, 1] * s
+        p1x = T_ch[0, 3] + d_T * T_ch[0, 2] + rod_radius * vx
+        p1y = T_ch[1, 3] + d_T * T_ch[1, 2] + rod_radius * vy
+        p1z = T_ch[2, 3] + d_T * T_ch[2, 2] + rod_radius * vz
+        f1, m1 = _line_f(coef, z, p1x, p1y, p1z, vx, vy, vz, rod_radius, lam_avg, lam_min)
+        f2, m2 = _line_f(coef, z, p1x - implant_length * T_ch[0, 2],
+                         p1y - implant_length * T_ch[1, 2], p1z - implant_length * T_ch[2, 2],
+                         vx, vy, vz, shrink2, lam_avg, lam_min)
+        a, b = f1 * 1e3, f2 * 1e3
+        if equation == 14:
+            a = math.copysign(math.sqrt(abs(a)), a)
+            b = math.copysign(math.sqrt(abs(b)), b)
+        elif equation == 22:
+            a = math.copysign(a * a, a)
+            b = math.copysign(b * b, b)
+        out[i] = -((m1 + 1) * a + (m2 + 1) * b) / (m1 + m2 + 2)
+    return out
+
+
 def f_safe(d: np.ndarray, lambda_avg: float = 0.5, lambda_min: float = 0.5) -> np.ndarray:
     """Eq. 13 on the (K, m + 1) distances of :func:`line_safe_distances` (NaN ignored):
     the weighted mean plus the weighted minimum while the line is clear, only the minimum
@@ -255,7 +338,17 @@ class PlacementProblem:
         return f[:K], f[K:], m[:K], m[K:]
 
     def evaluate(self, x: np.ndarray) -> np.ndarray:
-        """The objective (smaller is safer) for K placements ``x`` (K, 2)."""
+        """The objective (smaller is safer) for K placements ``x`` (K, 2), compiled (the
+        search's inner loop; :meth:`evaluate_numpy` is the same in numpy)."""
+        s = self.s
+        x = np.ascontiguousarray(np.atleast_2d(np.asarray(x, dtype=float)))
+        return _objective(self.model.coefficients, self.model.z, self.T_ch, x, s.rod_radius,
+                          s.implant_length, s.rod_radius if s.shrink_line2 else 0.0,
+                          s.lambda_avg, s.lambda_min, s.equation)
+
+    def evaluate_numpy(self, x: np.ndarray) -> np.ndarray:
+        """:meth:`evaluate` from :meth:`line_values` in numpy: the reference the compiled
+        objective is tested and benchmarked against."""
         f1, f2, m1, m2 = self.line_values(x)
         a, b = f1 * 1e3, f2 * 1e3       # the paper's millimetres
         if self.s.equation == 14:

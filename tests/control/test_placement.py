@@ -10,6 +10,7 @@ import pytest
 from oralnav.control.errors import PlanningError
 from oralnav.control.fpsm import FPSM
 from oralnav.control.placement import (
+    EQUATIONS,
     Hole,
     PlacementProblem,
     PlacementSettings,
@@ -105,6 +106,24 @@ def test_paper_literal_line2_moves_the_optimum():
     """The paper's text (line2 on the unshrunk model) gives 62.5 mm in its own cylinder
     case, not its Table 2 answer: why line2 is shrunk by default."""
     assert _place(14, shrink_line2=False).d_T == pytest.approx(0.0625, abs=1e-5)
+
+
+@pytest.mark.parametrize("equation", EQUATIONS)
+@pytest.mark.parametrize("shrink_line2", [True, False])
+def test_compiled_objective_matches_numpy(equation, shrink_line2):
+    """The compiled objective the search runs is eqs. 13-14 (21, 22) as the numpy
+    reference computes them: placements across and beyond the box, lines starting
+    outside the slice range, lines parallel to the slices (no crossings)."""
+    tilted = Hole([0.01, -0.04, 0.03], [0.2, 0.9, -0.3])
+    rng = np.random.default_rng(3)
+    x = np.column_stack([rng.uniform(-0.05, 0.2, 500), rng.uniform(-4, 4, 500)])
+    x = np.vstack([x, [[0.05, math.pi / 2], [0.05, -math.pi / 2], [0.0, 0.0]]])
+    for hole in (HOLE, tilted):
+        prob = PlacementProblem(CYL, hole, PlacementSettings(equation=equation,
+                                                             shrink_line2=shrink_line2))
+        fast, ref = prob.evaluate(x), prob.evaluate_numpy(x)
+        assert np.all(np.isfinite(fast))
+        np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-12)
 
 
 def test_pso_reaches_the_grid_optimum():
