@@ -34,3 +34,9 @@ class PlanningError(ControlError, ValueError):
 class AdmittanceError(ControlError, ValueError):
     """Bad admittance settings or input (non-finite force, bad ``dt``, a start position
     outside the fixture); the message names the value. The state is left untouched."""
+
+
+class NeedleError(ControlError, ValueError):
+    """A needle task was refused before any motion: a needle or suture geometry the
+    drive cannot follow (suture depth beyond the radius), an unreachable grasp, or a
+    tracker that has not converged. The message names the value and the reason."""
