@@ -1,0 +1,464 @@
+"""Needle tracking by a particle filter over the needle's pose (seed 002, §III.B).
+
+Each particle is a pose ``T_ref_N`` of the needle (frame N, :mod:`.needle`) in the rig's
+reference frame. One update:
+
+1. **Motion** (:meth:`NeedleFilter.predict`): Brownian motion while the needle is free
+   (each particle perturbed by Gaussian noise in position and rotation); while it is
+   grasped, every particle moved by the gripper's incremental motion first.
+2. **Measurement** (:meth:`NeedleFilter.update`): each image is reduced to a thin-feature
+   map (:func:`feature_distance`: pixels on thin dark or bright lines, such as the wire,
+   and the distance of every pixel to the nearest of them). A particle's score in a
+   camera is the mean over the needle's arc sample points, projected through the camera
+   model, of ``exp(-d^2 / 2 sigma^2)`` with ``d`` the distance-map value there (0 for a
+   point outside the image). The seed renders a virtual image per particle and
+   correlates it with the segmented image; projecting a few dozen arc points and reading a
+   distance map is the same comparison without the rendering, a few microseconds a
+   particle. Cameras' scores add (stereo: both views must agree).
+3. **Weights** ``exp(gain * score)``, then low-variance resampling (seed ref. [24]).
+
+Global initialisation (:meth:`NeedleFilter.initialize`) draws particles that put one arc
+point on a feature pixel of the first image at a depth inside the workspace, then anneals
+on that image (updates with shrinking noise). The estimate is the weighted chordal mean of
+the particles; its spread (position and angle) and score say whether the filter has
+converged (:class:`NeedleEstimate`), which is what a step that would move on the estimate
+must check.
+
+**Symmetry.** A circular arc is its own image under a half turn about its bisector (the
+in-plane axis at ``arc / 2``): base and tip swap and every point stays on the wire. No
+outline can tell them apart; the estimate is reported in the orientation nearest the
+previous one (the first time, the heavier of the two modes) and ``NeedleEstimate.pose_alt``
+is the other. Telling base from tip needs a cue the outline lacks (the suture at the swage,
+or the grasp that placed it).
+
+Pure math on arrays: images in, poses out; no I/O. Metres, radians, pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+
+from .camera import CameraModel
+from .errors import NeedleError
+from .needle import Needle
+
+
+@dataclass(frozen=True)
+class FilterSettings:
+    """Particle filter settings. Lengths m, angles rad, pixels px."""
+
+    particles: int = 3000
+    arc_points: int = 48            # arc sample points projected per particle
+    sigma_px: float = 2.0           # width of a point's score about a feature pixel
+    cap_px: float = 12.0            # distances beyond this score nothing
+    gain: float = 40.0              # weights exp(gain * score): how sharply a frame decides
+    position_noise: float = 0.0005  # Brownian motion per update, free needle (m)
+    rotation_noise: float = 0.03    # Brownian motion per update, free needle (rad)
+    grasped_position_noise: float = 0.0002
+    grasped_rotation_noise: float = 0.01
+    anneal_steps: int = 12          # updates on the first image at initialisation
+    anneal_start: float = 6.0       # noise factor of the first anneal step (to 1 at the end)
+    converged_position: float = 0.001   # spread below which the filter has converged (m)
+    converged_angle: float = math.radians(3.0)
+    converged_score: float = 0.5    # mean point score of the estimate, per camera
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.particles < 10 or self.arc_points < 4:
+            raise NeedleError(f"the needle filter needs >= 10 particles and >= 4 arc points, "
+                              f"got {self.particles} and {self.arc_points}")
+        if not (self.sigma_px > 0 and self.cap_px > self.sigma_px and self.gain > 0):
+            raise NeedleError("sigma_px > 0, cap_px > sigma_px and gain > 0 are required")
+        if min(self.position_noise, self.rotation_noise, self.grasped_position_noise,
+               self.grasped_rotation_noise) < 0 or self.anneal_steps < 0:
+            raise NeedleError("motion noise and anneal_steps must be >= 0")
+
+
+@dataclass(frozen=True)
+class NeedleEstimate:
+    """The filter's answer after an update.
+
+    ``pose``: ``T_ref_N`` (4x4); ``pose_alt``: the same outline with base and tip swapped.
+    ``position_spread`` (m) and ``angle_spread`` (rad): weighted RMS of the particles about
+    the estimate. ``score``: the share of the estimate's projected arc that lies on thin
+    features, mean over the cameras (0..1).
+    ``match``: its normalised correlation with the features (:meth:`NeedleFilter._match`,
+    1 for the best particle's coverage). ``ess``: effective sample size before
+    resampling. ``converged``: spreads, score and match within the settings' bounds: only
+    then may a step move on ``pose``.
+    """
+
+    pose: np.ndarray
+    pose_alt: np.ndarray
+    position_spread: float
+    angle_spread: float
+    score: float
+    match: float
+    ess: float
+    converged: bool
+
+
+# -- thin features ------------------------------------------------------------------------
+
+def feature_distance(image: np.ndarray, wire_px: float, contrast: float = 12.0,
+                     ignore: np.ndarray | None = None) -> np.ndarray:
+    """Distance (px, float32, same shape as ``image``) from every pixel to the nearest
+    thin-feature pixel of a mono8 ``image``.
+
+    Thin features are lines narrower than about ``wire_px`` pixels that differ from their
+    surroundings by ``contrast`` DN or more (or three times the image's median response,
+    when noise is stronger), dark or bright: the morphological black-hat
+    (closing minus image: dark lines) and top-hat (image minus opening: bright lines,
+    such as a needle's highlights) with a square window of about twice the wire width;
+    wider structures, such as the pad's edges, pass both unchanged. ``ignore`` (bool mask)
+    removes known features, such as a drawn incision, from the map.
+    """
+    img = np.asarray(image)
+    if img.dtype != np.uint8 or img.ndim != 2:
+        raise NeedleError(f"needle features need a mono8 image, got {img.dtype} "
+                          f"with shape {img.shape}")
+    if not wire_px > 0:
+        raise NeedleError(f"wire width must be > 0 px, got {wire_px}")
+    k = max(3, 2 * int(math.ceil(wire_px)) + 1)
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
+    # a light blur first: the hats of raw sensor noise span its whole range over a window
+    smooth = cv2.GaussianBlur(img, (3, 3), 0)
+    dark = cv2.morphologyEx(smooth, cv2.MORPH_BLACKHAT, kernel)
+    bright = cv2.morphologyEx(smooth, cv2.MORPH_TOPHAT, kernel)
+    response = cv2.max(dark, bright)
+    # the threshold rises above the noise: most pixels are background, so the median
+    # response is the noise's typical hat height
+    level = max(contrast, 3.0 * float(np.median(response[::4, ::4])))
+    feature = response >= level
+    if ignore is not None:
+        feature &= ~np.asarray(ignore, dtype=bool)
+    src = np.where(feature, 0, 255).astype(np.uint8)
+    return cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_3)
+
+
+# -- compiled kernels --------------------------------------------------------------------
+
+@numba.njit(cache=True, inline="always")
+def _pixel(Kc: np.ndarray, dc: np.ndarray, x: float, y: float, z: float
+           ) -> tuple[float, float]:
+    """OpenCV's projection (rational radial, tangential and thin-prism terms; the tilted
+    model is refused by the filter) of a camera-frame point; NaN behind the camera."""
+    if z <= 0.0:
+        return math.nan, math.nan
+    xn, yn = x / z, y / z
+    r2 = xn * xn + yn * yn
+    r4 = r2 * r2
+    r6 = r4 * r2
+    radial = (1.0 + dc[0] * r2 + dc[1] * r4 + dc[4] * r6) / \
+        (1.0 + dc[5] * r2 + dc[6] * r4 + dc[7] * r6)
+    xd = xn * radial + 2.0 * dc[2] * xn * yn + dc[3] * (r2 + 2.0 * xn * xn) \
+        + dc[8] * r2 + dc[9] * r4
+    yd = yn * radial + dc[2] * (r2 + 2.0 * yn * yn) + 2.0 * dc[3] * xn * yn \
+        + dc[10] * r2 + dc[11] * r4
+    return Kc[0, 0] * xd + Kc[0, 2], Kc[1, 1] * yd + Kc[1, 2]
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _scores(R: np.ndarray, t: np.ndarray, pts: np.ndarray, T_cam_ref: np.ndarray,
+            Ks: np.ndarray, ds: np.ndarray, maps: np.ndarray, sizes: np.ndarray,
+            sigma: float, cap: float) -> np.ndarray:
+    """Per particle and camera (P, C, 2): the supported length ``sum l s`` and the
+    projected length ``sum l`` (px) of the arc inside the image, by the trapezoid rule
+    over the chords between consecutive arc points (``s`` a point's score). Particles
+    ``R`` (P, 3, 3), ``t`` (P, 3) are ``T_ref_N``; ``pts`` (K, 3) arc points in N;
+    ``maps`` (C, H, W) distance maps (px), each camera's valid part ``sizes`` (C, 2) =
+    (W, H). A chord counts only when both its ends are in the image."""
+    P, C, K = R.shape[0], Ks.shape[0], pts.shape[0]
+    out = np.zeros((P, C, 2))
+    inv2s2 = 0.5 / (sigma * sigma)
+    for p in numba.prange(P):
+        for c in range(C):
+            # T_cam_N = T_cam_ref @ T_ref_N, row by row
+            A = T_cam_ref[c]
+            r00 = A[0, 0] * R[p, 0, 0] + A[0, 1] * R[p, 1, 0] + A[0, 2] * R[p, 2, 0]
+            r01 = A[0, 0] * R[p, 0, 1] + A[0, 1] * R[p, 1, 1] + A[0, 2] * R[p, 2, 1]
+            r02 = A[0, 0] * R[p, 0, 2] + A[0, 1] * R[p, 1, 2] + A[0, 2] * R[p, 2, 2]
+            r10 = A[1, 0] * R[p, 0, 0] + A[1, 1] * R[p, 1, 0] + A[1, 2] * R[p, 2, 0]
+            r11 = A[1, 0] * R[p, 0, 1] + A[1, 1] * R[p, 1, 1] + A[1, 2] * R[p, 2, 1]
+            r12 = A[1, 0] * R[p, 0, 2] + A[1, 1] * R[p, 1, 2] + A[1, 2] * R[p, 2, 2]
+            r20 = A[2, 0] * R[p, 0, 0] + A[2, 1] * R[p, 1, 0] + A[2, 2] * R[p, 2, 0]
+            r21 = A[2, 0] * R[p, 0, 1] + A[2, 1] * R[p, 1, 1] + A[2, 2] * R[p, 2, 1]
+            r22 = A[2, 0] * R[p, 0, 2] + A[2, 1] * R[p, 1, 2] + A[2, 2] * R[p, 2, 2]
+            m0 = A[0, 0] * t[p, 0] + A[0, 1] * t[p, 1] + A[0, 2] * t[p, 2] + A[0, 3]
+            m1 = A[1, 0] * t[p, 0] + A[1, 1] * t[p, 1] + A[1, 2] * t[p, 2] + A[1, 3]
+            m2 = A[2, 0] * t[p, 0] + A[2, 1] * t[p, 1] + A[2, 2] * t[p, 2] + A[2, 3]
+            W, H = sizes[c, 0] - 1, sizes[c, 1] - 1
+            sup = 0.0
+            tot = 0.0
+            pu, pv, ps, prev_in = 0.0, 0.0, 0.0, False
+            for k in range(K):
+                q0, q1, q2 = pts[k, 0], pts[k, 1], pts[k, 2]
+                u, v = _pixel(Ks[c], ds[c], r00 * q0 + r01 * q1 + r02 * q2 + m0,
+                              r10 * q0 + r11 * q1 + r12 * q2 + m1,
+                              r20 * q0 + r21 * q1 + r22 * q2 + m2)
+                inside = u >= 0.0 and v >= 0.0 and u <= W and v <= H   # False for NaN
+                sc = 0.0
+                if inside:
+                    d = maps[c, int(v + 0.5), int(u + 0.5)]
+                    if d < cap:
+                        sc = math.exp(-d * d * inv2s2)
+                    if prev_in:
+                        ln = math.hypot(u - pu, v - pv)
+                        sup += 0.5 * ln * (sc + ps)
+                        tot += ln
+                pu, pv, ps, prev_in = u, v, sc, inside
+            out[p, c, 0] = sup
+            out[p, c, 1] = tot
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _perturb(R: np.ndarray, t: np.ndarray, dR: np.ndarray, dt: np.ndarray) -> None:
+    """In place: ``R <- exp(dR) R``, ``t <- t + dt`` (rotation vectors ``dR`` (P, 3), in
+    the reference frame, about each particle's own origin)."""
+    for p in range(R.shape[0]):
+        wx, wy, wz = dR[p, 0], dR[p, 1], dR[p, 2]
+        th = math.sqrt(wx * wx + wy * wy + wz * wz)
+        if th > 0.0:
+            kx, ky, kz = wx / th, wy / th, wz / th
+            c, s = math.cos(th), math.sin(th)
+            v = 1.0 - c
+            E = np.array([[c + kx * kx * v, kx * ky * v - kz * s, kx * kz * v + ky * s],
+                          [ky * kx * v + kz * s, c + ky * ky * v, ky * kz * v - kx * s],
+                          [kz * kx * v - ky * s, kz * ky * v + kx * s, c + kz * kz * v]])
+            R[p] = E @ R[p]
+        t[p, 0] += dt[p, 0]
+        t[p, 1] += dt[p, 1]
+        t[p, 2] += dt[p, 2]
+
+
+def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
+    """``n`` rotations uniform on SO(3) (unit quaternions from normals)."""
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], axis=1)
+
+
+def _project_rotation(M: np.ndarray) -> np.ndarray:
+    """Nearest rotation to a 3x3 matrix (the chordal mean's last step)."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+# -- the filter ---------------------------------------------------------------------------
+
+class NeedleFilter:
+    """A particle filter over ``T_ref_N`` seen by one or more cameras of a rig.
+
+    ``cameras`` share the reference frame (``CameraModel.T_ref_cam``); images passed to
+    :meth:`initialize` and :meth:`update` are distance maps from :func:`feature_distance`,
+    one per camera in the same order.
+    """
+
+    def __init__(self, needle: Needle, cameras: Sequence[CameraModel],
+                 settings: FilterSettings | None = None) -> None:
+        if not cameras:
+            raise NeedleError("the needle filter needs at least one camera")
+        for cam in cameras:
+            if cam.dist.size == 14 and np.any(cam.dist[12:] != 0):
+                raise NeedleError(f"camera {cam.name!r}: the tilted sensor model is not "
+                                  "supported by the needle filter")
+        self.needle, self.cameras = needle, tuple(cameras)
+        self.s = settings or FilterSettings()
+        self.rng = np.random.default_rng(self.s.seed)
+        self.points = np.ascontiguousarray(needle.points(self.s.arc_points))
+        self.T_cam_ref = np.stack([c.T_cam_ref for c in self.cameras])
+        self.Ks = np.stack([c.K for c in self.cameras])
+        ds = np.zeros((len(self.cameras), 14))
+        for i, c in enumerate(self.cameras):
+            ds[i, :c.dist.size] = c.dist
+        self.ds = ds
+        self.sizes = np.array([c.size for c in self.cameras], dtype=np.int64)
+        # the half turn that maps the arc onto itself (base <-> tip), in frame N
+        b = needle.arc / 2
+        axis = np.array([math.cos(b), math.sin(b), 0.0])
+        self.flip = 2.0 * np.outer(axis, axis) - np.eye(3)
+        self.R = np.empty((0, 3, 3))
+        self.t = np.empty((0, 3))
+        self.w = np.empty(0)
+        self.last: NeedleEstimate | None = None
+
+    # -- maps --------------------------------------------------------------------------
+    def _stack(self, maps: Sequence[np.ndarray]) -> np.ndarray:
+        if len(maps) != len(self.cameras):
+            raise NeedleError(f"expected {len(self.cameras)} feature maps (one per camera), "
+                              f"got {len(maps)}")
+        H = max(c.height for c in self.cameras)
+        W = max(c.width for c in self.cameras)
+        out = np.full((len(maps), H, W), np.float32(1e6), np.float32)
+        for i, (m, cam) in enumerate(zip(maps, self.cameras, strict=True)):
+            m = np.asarray(m, dtype=np.float32)
+            if m.shape != (cam.height, cam.width):
+                raise NeedleError(f"camera {cam.name!r}: feature map is {m.shape}, the camera "
+                                  f"is {cam.height} x {cam.width}")
+            out[i, :cam.height, :cam.width] = m
+        return out
+
+    def scores(self, maps: Sequence[np.ndarray], R: np.ndarray | None = None,
+               t: np.ndarray | None = None) -> np.ndarray:
+        """The match (P, C) of the particles (or of poses ``R`` (P, 3, 3), ``t`` (P, 3))
+        with the images: :meth:`_match` normalised by the best of them."""
+        R = self.R if R is None else np.ascontiguousarray(R, dtype=float)
+        t = self.t if t is None else np.ascontiguousarray(t, dtype=float)
+        raw = self._raw(self._stack(maps), R, t)
+        return self._match(raw, np.maximum(raw[:, :, 0].max(axis=0), 1.0))
+
+    def _raw(self, stacked: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return _scores(R, t, self.points, self.T_cam_ref, self.Ks, self.ds, stacked,
+                       self.sizes, self.s.sigma_px, self.s.cap_px)
+
+    @staticmethod
+    def _match(raw: np.ndarray, norm: np.ndarray) -> np.ndarray:
+        """``supported / sqrt(projected * norm)`` per pose and camera: the normalised
+        cross-correlation of a thin virtual needle with the feature image, computed on
+        the projected arc. A pose whose arc lies on features only in part scores low
+        (``supported < projected``), and so does one that covers only part of what the
+        best covers (a smaller or farther needle lying along a piece of the true one:
+        ``projected < norm``). ``norm`` (C,) is the best supported length of the swarm."""
+        return raw[:, :, 0] / np.sqrt(np.maximum(raw[:, :, 1], 1e-9) * norm)
+
+    # -- initialisation -----------------------------------------------------------------
+    def initialize(self, maps: Sequence[np.ndarray], depth_range: tuple[float, float],
+                   camera: int = 0) -> NeedleEstimate:
+        """Global localisation on the first images: particles with one arc point on a
+        feature pixel of camera ``camera`` at a depth in ``depth_range`` (m, along that
+        camera's viewing ray), random orientations, then :attr:`FilterSettings.anneal_steps`
+        updates on the same images with the motion noise shrinking from
+        ``anneal_start`` times its value to once."""
+        s = self.s
+        lo, hi = depth_range
+        if not 0 < lo < hi:
+            raise NeedleError(f"depth range must satisfy 0 < near < far, got {depth_range}")
+        cam = self.cameras[camera]
+        m = np.asarray(maps[camera])
+        vs, us = np.nonzero(m[:cam.height, :cam.width] < 0.5)
+        if us.size == 0:
+            raise NeedleError(f"camera {cam.name!r} shows no thin feature: nothing to "
+                              "localise the needle on")
+        P = s.particles
+        pick = self.rng.integers(0, us.size, P)
+        uv = np.stack([us[pick], vs[pick]], axis=1).astype(float)
+        ray = cam.backproject(uv)                         # unit-z rays in the camera frame
+        depth = self.rng.uniform(lo, hi, P)
+        p_cam = ray * depth[:, None]
+        R_cam = _random_rotations(self.rng, P)
+        phi = self.rng.uniform(0.0, self.needle.arc, P)
+        on_arc = self.needle.point(phi)                    # the point put on the pixel
+        t_cam = p_cam - np.einsum("pij,pj->pi", R_cam, on_arc)
+        T_ref_cam = cam.T_ref_cam
+        self.R = np.ascontiguousarray(np.einsum("ij,pjk->pik", T_ref_cam[:3, :3], R_cam))
+        self.t = np.ascontiguousarray(t_cam @ T_ref_cam[:3, :3].T + T_ref_cam[:3, 3])
+        self.w = np.full(P, 1.0 / P)
+        self.last = None
+        est = self.update(maps)
+        n = s.anneal_steps
+        for k in range(n):
+            f = s.anneal_start ** (1.0 - (k + 1) / n) if n else 1.0
+            self.predict(scale=f)
+            est = self.update(maps)
+        return est
+
+    # -- one step -----------------------------------------------------------------------
+    def predict(self, delta: np.ndarray | None = None, scale: float = 1.0) -> None:
+        """Motion update. ``delta``: the gripper's incremental motion in the reference
+        frame (``T_ref_T(now) @ inv(T_ref_T(before))``) while it holds the needle: every
+        particle moves with it, then the grasped noise is added; ``None``: free needle,
+        Brownian motion. ``scale`` multiplies the noise (annealing)."""
+        s = self.s
+        P = self.R.shape[0]
+        if P == 0:
+            raise NeedleError("the needle filter is not initialised")
+        if delta is not None:
+            D = np.asarray(delta, dtype=float)
+            if D.shape != (4, 4) or not np.all(np.isfinite(D)):
+                raise NeedleError("gripper motion must be a finite 4x4 transform")
+            self.R = np.ascontiguousarray(np.einsum("ij,pjk->pik", D[:3, :3], self.R))
+            self.t = np.ascontiguousarray(self.t @ D[:3, :3].T + D[:3, 3])
+            sp, sr = s.grasped_position_noise, s.grasped_rotation_noise
+        else:
+            sp, sr = s.position_noise, s.rotation_noise
+        dR = self.rng.normal(0.0, sr * scale, (P, 3))
+        dt = self.rng.normal(0.0, sp * scale, (P, 3))
+        # rotate about the arc's middle, not N's origin (the centre, off the wire): a
+        # rotation about the centre would swing the whole wire sideways
+        mid = self.needle.point(self.needle.arc / 2)
+        c = np.einsum("pij,j->pi", self.R, mid)
+        _perturb(self.R, self.t, dR, dt)
+        c2 = np.einsum("pij,j->pi", self.R, mid)
+        self.t += c - c2
+
+    def update(self, maps: Sequence[np.ndarray]) -> NeedleEstimate:
+        """Measurement update on the current images, then resampling. Returns the
+        estimate (also kept as :attr:`last`)."""
+        s = self.s
+        if self.R.shape[0] == 0:
+            raise NeedleError("the needle filter is not initialised")
+        stacked = self._stack(maps)
+        raw = self._raw(stacked, self.R, self.t)
+        norm = np.maximum(raw[:, :, 0].max(axis=0), 1.0)
+        total = self._match(raw, norm).sum(axis=1)
+        logw = np.log(np.maximum(self.w, 1e-300)) + s.gain * total
+        logw -= logw.max()
+        w = np.exp(logw)
+        w /= w.sum()
+        est = self._estimate(w, stacked, norm)
+        self._resample(w)
+        self.last = est
+        return est
+
+    def _resample(self, w: np.ndarray) -> None:
+        """Low-variance (systematic) resampling: one random offset, P equal steps."""
+        P = w.size
+        u = (self.rng.random() + np.arange(P)) / P
+        idx = np.minimum(np.searchsorted(np.cumsum(w), u), P - 1)
+        self.R = np.ascontiguousarray(self.R[idx])
+        self.t = np.ascontiguousarray(self.t[idx])
+        self.w = np.full(P, 1.0 / P)
+
+    def _estimate(self, w: np.ndarray, stacked: np.ndarray, norm: np.ndarray
+                  ) -> NeedleEstimate:
+        s = self.s
+        # the reference orientation: the previous estimate's, else the best particle's
+        ref = self.last.pose[:3, :3] if self.last is not None else self.R[int(np.argmax(w))]
+        # bring each particle to the symmetric twin nearer the reference (same outline):
+        # trace(ref^T R) grows as R nears ref
+        Rf = self.R @ self.flip
+        near = np.einsum("ij,pij->p", ref, self.R)
+        near_f = np.einsum("ij,pij->p", ref, Rf)
+        use_f = near_f > near
+        Rc = np.where(use_f[:, None, None], Rf, self.R)
+        # the flip is a half turn about an axis through N's origin (the arc's centre):
+        # both twins share the translation
+        Rm = _project_rotation(np.einsum("p,pij->ij", w, Rc))
+        tm = w @ self.t
+        pos = float(np.sqrt(w @ np.sum((self.t - tm) ** 2, axis=1)))
+        cos_a = np.clip((np.einsum("ij,pij->p", Rm, Rc) - 1.0) / 2.0, -1.0, 1.0)
+        ang = float(np.sqrt(w @ np.arccos(cos_a) ** 2))
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = Rm, tm
+        T_alt = T.copy()
+        T_alt[:3, :3] = Rm @ self.flip
+        raw = self._raw(stacked, T[None, :3, :3].copy(), T[None, :3, 3].copy())
+        score = float(np.mean(raw[0, :, 0] / np.maximum(raw[0, :, 1], 1e-9)))
+        match = float(np.mean(self._match(raw, norm)))
+        conv = (pos <= s.converged_position and ang <= s.converged_angle
+                and score >= s.converged_score and match >= s.converged_score)
+        return NeedleEstimate(T, T_alt, pos, ang, score, match, float(1.0 / np.sum(w * w)),
+                              conv)
