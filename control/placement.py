@@ -418,7 +418,7 @@ def certify_lines(check: RodCheck, problem: PlacementProblem, x: np.ndarray,
     E = T + LINE_LENGTH * np.concatenate([D, D])
     r = np.concatenate([np.full(K, s.rod_radius),
                         np.full(K, s.rod_radius if s.shrink_line2 else 0.0)])
-    c = check.clearances(T, E, r)
+    c = check.clearances(T, E, r, need)
     return c[:K], c[K:]
 
 

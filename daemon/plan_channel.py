@@ -1,7 +1,7 @@
 """The plan channel: guided-insertion plans from the daemon to the control process.
 
 A :class:`~oralnav.control.guided_motion.GuidePlan` holds numpy arrays, the surrogate
-model and its certified rod check (distance grids: about 2 MB for the example scenes),
+model and its certified rod check (distance grids: 2 to 6 MB for the example scenes),
 far more than the fixed shared records carry, and it changes rarely (once per
 insertion). It travels through an OS pipe instead, one frame per plan::
 
@@ -19,7 +19,7 @@ Neither end ever blocks:
   measures the whole call at about 1 us, under 0.1 % of a 2 ms period). When bytes are
   there it reads at most :data:`READ_CHUNK` of them (tens of microseconds), so a large
   plan arrives over a few periods rather than stalling one; the period that completes a
-  frame unpickles it (about 0.2 ms for the 1.9 MB cylinder plan, numpy arrays copied).
+  frame unpickles it (about 0.3 ms for the 6.2 MB cylinder plan, numpy arrays copied).
 
 Unpickling happens in the control process. It imports and compiles nothing there: the
 child imports :mod:`oralnav.control.guided_motion` and runs one guided step on a small
