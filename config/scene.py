@@ -1,19 +1,23 @@
-"""The scene file: what the simulator renders (see docs/formats.md).
+"""The scene file: what the simulator renders (see docs/formats.md, docs/simulator.md).
 
 A scene names a rig file and a fields file (paths relative to the scene file), places
-fields in the rig's reference frame, adds occluders and sets the imaging model.
+fields in the rig's reference frame, adds occluders and the needle-driving objects
+(needles, tissue pads, grippers) and sets the imaging model.
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, ClassVar
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
+from oralnav.control.errors import NeedleError
 from oralnav.control.geometry import as_transform, transform_from_euler
-from oralnav.sim.scene import Blot, Imaging, Placement, Rod, Scene
+from oralnav.control.needle import Needle
+from oralnav.sim.scene import Blot, Gripper, Imaging, NeedleObject, Placement, Rod, Scene, TissuePad
 
 from .errors import ConfigError
 from .fields import load_fields
@@ -81,20 +85,122 @@ class BlotEntry(Strict):
     level: Level = 60.0
 
 
+def _rigid(v: list[list[float]] | None, key: str) -> list[list[float]] | None:
+    if v is not None:
+        try:
+            as_transform(v, what=key)
+        except ValueError as exc:  # the key is already in the message's location
+            raise ValueError(str(exc).removeprefix(f"{key}: ")) from None
+    return v
+
+
+class _Posed(Strict):
+    """A pose given either as a 4x4 ``T_ref_*`` (the key named by ``POSE``) or as
+    ``translation`` (m) + ``euler_xyz_deg`` (extrinsic x-y-z, deg), reference frame."""
+
+    POSE: ClassVar[str] = ""
+    translation: Vec3 | None = None
+    euler_xyz_deg: Vec3 | None = None
+
+    @model_validator(mode="after")
+    def _one_pose(self) -> _Posed:
+        if (getattr(self, self.POSE) is None) == (self.translation is None):
+            raise ValueError(f"give the pose either as {self.POSE} (4x4) or as translation "
+                             "(+ euler_xyz_deg), not both or neither")
+        if self.euler_xyz_deg is not None and self.translation is None:
+            raise ValueError("euler_xyz_deg needs translation")
+        return self
+
+    def pose(self, path: Path, key: str) -> np.ndarray:
+        T = getattr(self, self.POSE)
+        if T is not None:
+            return build(path, f"{key}.{self.POSE}", lambda: as_transform(T, what=self.POSE))
+        return transform_from_euler(self.translation, self.euler_xyz_deg or (0.0, 0.0, 0.0))
+
+
+class NeedleEntry(_Posed):
+    """A suture needle (frame N of oralnav.control.needle); sizes in mm, the arc in deg."""
+
+    POSE: ClassVar[str] = "T_ref_needle"
+    T_ref_needle: list[list[Float]] | None = None
+    radius_mm: Annotated[Float, Field(gt=0, le=100)] = 13.0
+    wire_diameter_mm: Annotated[Float, Field(gt=0, le=5)] = 1.0
+    arc_deg: Annotated[Float, Field(gt=0, le=360)] = 180.0
+    level: Level = 70.0
+    specular: Level = 180.0
+    shininess: Annotated[Float, Field(ge=1, le=1000)] = 20.0
+
+    @field_validator("T_ref_needle")
+    @classmethod
+    def _t_rigid(cls, v: list[list[float]] | None) -> list[list[float]] | None:
+        return _rigid(v, "T_ref_needle")
+
+
+class PadEntry(_Posed):
+    """A tissue pad: its surface the pad frame's z = 0 plane, +z out of the tissue."""
+
+    POSE: ClassVar[str] = "T_ref_pad"
+    T_ref_pad: list[list[Float]] | None = None
+    size: tuple[Annotated[Float, Field(gt=0, le=1)], Annotated[Float, Field(gt=0, le=1)]]
+    level: Level = 170.0
+    incision: tuple[tuple[Float, Float], tuple[Float, Float]]
+    incision_width: Annotated[Float, Field(gt=0, le=0.05)] = 0.0008
+    incision_level: Level = 35.0
+
+    @field_validator("T_ref_pad")
+    @classmethod
+    def _t_rigid(cls, v: list[list[float]] | None) -> list[list[float]] | None:
+        return _rigid(v, "T_ref_pad")
+
+
+class GripperEntry(_Posed):
+    """A gripper (frame T at the tip, y across the jaws, z along the gripper)."""
+
+    POSE: ClassVar[str] = "T_ref_tool"
+    T_ref_tool: list[list[Float]] | None = None
+    jaw_length: Annotated[Float, Field(gt=0, le=0.1)] = 0.010
+    jaw_width: Annotated[Float, Field(gt=0, le=0.05)] = 0.0025
+    jaw_thickness: Annotated[Float, Field(gt=0, le=0.05)] = 0.0012
+    opening: Annotated[Float, Field(ge=0, le=0.05)] = 0.001
+    shaft_radius: Annotated[Float, Field(gt=0, le=0.05)] = 0.003
+    shaft_length: Annotated[Float, Field(gt=0, le=1.0)] = 0.05
+    level: Level = 110.0
+
+    @field_validator("T_ref_tool")
+    @classmethod
+    def _t_rigid(cls, v: list[list[float]] | None) -> list[list[float]] | None:
+        return _rigid(v, "T_ref_tool")
+
+
 class SceneFile(Strict):
     rig: str
     fields: str
     seed: Annotated[Int, Field(ge=0, lt=2**63)] = 0
     imaging: ImagingEntry = ImagingEntry()
-    placements: dict[str, PlacementEntry] = Field(min_length=1)
+    placements: dict[str, PlacementEntry] = Field(default_factory=dict)
     rods: dict[str, RodEntry] = Field(default_factory=dict)
     blots: dict[str, BlotEntry] = Field(default_factory=dict)
+    needles: dict[str, NeedleEntry] = Field(default_factory=dict)
+    pads: dict[str, PadEntry] = Field(default_factory=dict)
+    grippers: dict[str, GripperEntry] = Field(default_factory=dict)
 
 
 def load_scene(path: str | Path) -> Scene:
     """Read a scene file and the rig and fields files it names; all validated."""
     path = Path(path)
     doc = validate(SceneFile, read_toml(path), path)
+    if not (doc.placements or doc.needles or doc.pads or doc.grippers):
+        raise ConfigError(path, "placements", "a scene needs at least one object: a "
+                          "[placements.<name>], [needles.<name>], [pads.<name>] or "
+                          "[grippers.<name>] section")
+    seen: dict[str, str] = {n: "placements" for n in doc.placements}
+    for section in ("needles", "pads", "grippers"):
+        for n in getattr(doc, section):
+            if n in seen:
+                raise ConfigError(path, f"{section}.{n}",
+                                  f"name {n!r} is already used in [{seen[n]}]; placements, "
+                                  "needles, pads and grippers need distinct names")
+            seen[n] = section
     rig = load_rig(resolve_file(path, "rig", doc.rig))
     fields = load_fields(resolve_file(path, "fields", doc.fields))
     placements = []
@@ -126,4 +232,42 @@ def load_scene(path: str | Path) -> Scene:
                        level=b.level) for n, b in doc.blots.items())
     imaging = Imaging(**doc.imaging.model_dump())
     return Scene(rig=rig, placements=tuple(placements), rods=rods, blots=blots,
-                 imaging=imaging, seed=doc.seed, source=str(path))
+                 imaging=imaging, seed=doc.seed, source=str(path),
+                 needles=tuple(_needle(path, n, e) for n, e in doc.needles.items()),
+                 pads=tuple(_pad(path, n, e) for n, e in doc.pads.items()),
+                 grippers=tuple(_gripper(path, n, e) for n, e in doc.grippers.items()))
+
+
+def _needle(path: Path, name: str, e: NeedleEntry) -> NeedleObject:
+    key = f"needles.{name}"
+    if e.wire_diameter_mm >= e.radius_mm:
+        raise ConfigError(path, f"{key}.wire_diameter_mm",
+                          f"must be below radius_mm ({e.radius_mm}), got {e.wire_diameter_mm}")
+    try:
+        needle = Needle(radius=e.radius_mm * 1e-3, wire_diameter=e.wire_diameter_mm * 1e-3,
+                        arc=math.radians(e.arc_deg))
+    except NeedleError as exc:  # the bounds above leave nothing for it, but say where
+        raise ConfigError(path, key, str(exc)) from None
+    return NeedleObject(name=name, needle=needle, T_ref_needle=e.pose(path, key),
+                        level=e.level, specular=e.specular, shininess=e.shininess)
+
+
+def _pad(path: Path, name: str, e: PadEntry) -> TissuePad:
+    key = f"pads.{name}"
+    sx, sy = e.size
+    for end in e.incision:
+        if abs(end[0]) > sx / 2 or abs(end[1]) > sy / 2:
+            raise ConfigError(path, f"{key}.incision",
+                              f"end {list(end)} lies outside the pad (size {list(e.size)} m, "
+                              f"centred on the pad frame's origin: |x| <= {sx / 2}, "
+                              f"|y| <= {sy / 2})")
+    return TissuePad(name=name, T_ref_pad=e.pose(path, key), size=e.size, level=e.level,
+                     incision=e.incision, incision_width=e.incision_width,
+                     incision_level=e.incision_level)
+
+
+def _gripper(path: Path, name: str, e: GripperEntry) -> Gripper:
+    return Gripper(name=name, T_ref_tool=e.pose(path, f"grippers.{name}"),
+                   jaw_length=e.jaw_length, jaw_width=e.jaw_width,
+                   jaw_thickness=e.jaw_thickness, opening=e.opening,
+                   shaft_radius=e.shaft_radius, shaft_length=e.shaft_length, level=e.level)

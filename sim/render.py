@@ -22,6 +22,16 @@ so the same scene, seed and frame give the same bytes.
 Ground truth per camera: each field's pose and the exact projection of every visible
 chessboard corner (in the image, printed face toward the camera, not under a blot, not
 hidden by a nearer object), with its obliquity.
+
+Needle-driving objects (seed 002): tissue pads, needles and grippers. A pad is a plane
+patch like a field's (a light level with a dark incision line). Needles (a torus segment
+drawn as mitred chord pieces of the wire) and grippers (box jaws and a cylinder shaft) are
+ray-cast piece by piece, each piece inside its own small box, into one sample-level
+z-buffer per camera (``_object_layer``), in which the pads take part as occluders. A needle
+lying on a pad, a needle between the jaws, or a needle half inside the tissue is thus
+resolved per sample, before the box filter, rather than per object. The layer is then one
+object to the far-to-near compositing, after every pad. Ground truth per camera and needle:
+its pose, the projection of K arc points and whether each is visible.
 """
 
 from __future__ import annotations
@@ -39,11 +49,20 @@ from oralnav.control.camera import CameraModel
 from oralnav.control.geometry import transform_points
 from oralnav.control.markers import CylinderSurface, MarkerField, PlaneSurface
 
-from .scene import Imaging, Placement, Rod, Scene
+from .scene import Gripper, Imaging, NeedleObject, Placement, Rod, Scene, TissuePad
 
 #: Finest texture: pixels per chessboard square. Coarser mip levels halve it down to 4.
 MAX_TEXELS_PER_SQUARE = 512
 MIN_TEXELS_PER_SQUARE = 4
+
+#: Arc points per needle in the ground truth (:class:`NeedleTruth`), base to tip.
+NEEDLE_TRUTH_POINTS = 64
+#: Bound on the sagitta of the needle's chord pieces: this fraction of the wire radius, and
+#: this fraction of a pixel at the needle's nearest point (see ``_needle_pieces``).
+SAGITTA_WIRE = 0.1
+SAGITTA_PX = 0.05
+#: Needle and gripper parts nearer than this to the camera plane (m) are not drawn.
+NEAR = 1e-3
 
 
 class RenderError(ValueError):
@@ -72,8 +91,44 @@ class FieldTruth:
 
 
 @dataclass
+class NeedleTruth:
+    """Ground truth of one needle in one camera.
+
+    ``phi`` (K,) are the arc angles (rad, base 0 to tip ``arc``) of K points equally spaced
+    along the needle's centreline (``Needle.points(K)``, frame N), ``points_px`` (K x 2)
+    their exact projections through the camera model (distortion included; NaN behind the
+    camera), ``visible`` (K,) whether each is seen: in the image, in front of the camera and
+    not hidden by a nearer object (a pad, a gripper, another needle, a field or a rod; the
+    needle's own wire does not hide its centreline).
+    """
+
+    T_cam_needle: np.ndarray
+    phi: np.ndarray
+    points_px: np.ndarray
+    visible: np.ndarray
+
+    @property
+    def visible_fraction(self) -> float:
+        """Share of the K arc points that are visible (0..1)."""
+        return float(self.visible.mean()) if len(self.visible) else 0.0
+
+    def to_json(self) -> dict:
+        return {"T_cam_needle": self.T_cam_needle.tolist(),
+                "phi_rad": self.phi.tolist(),
+                "points_px": [[float(u), float(v)] if np.isfinite(u) and np.isfinite(v)
+                              else None for u, v in self.points_px],
+                "visible": [bool(b) for b in self.visible],
+                "visible_fraction": round(self.visible_fraction, 6)}
+
+
+@dataclass
 class Frame:
-    """One rendered frame: an image per camera, ground truth, and how long each took (s)."""
+    """One rendered frame: an image per camera, ground truth, and how long each took (s).
+
+    ``truth`` holds the fields' truth per camera; ``needle_truth`` the needles' (per camera,
+    every needle of the scene). ``T_ref_needle``, ``T_ref_pad`` and ``T_ref_tool`` are the
+    poses the needles, pads and grippers were rendered at (reference frame).
+    """
 
     images: dict[str, np.ndarray]
     T_ref_field: dict[str, np.ndarray]
@@ -81,9 +136,15 @@ class Frame:
     frame: int
     seed: int
     render_s: dict[str, float] = field(default_factory=dict)
+    needle_truth: dict[str, dict[str, NeedleTruth]] = field(default_factory=dict)
+    T_ref_needle: dict[str, np.ndarray] = field(default_factory=dict)
+    T_ref_pad: dict[str, np.ndarray] = field(default_factory=dict)
+    T_ref_tool: dict[str, np.ndarray] = field(default_factory=dict)
 
     def truth_json(self, reference: str, image_files: Mapping[str, str] | None = None) -> dict:
-        """The ``truth.json`` document (see docs/formats.md)."""
+        """The ``truth.json`` document (see docs/formats.md). Scenes with needles, pads or
+        grippers add ``needles``, ``pads``, ``grippers`` and each camera's ``needles``
+        (docs/simulator.md)."""
         cams = {}
         for cam, fields in self.truth.items():
             entry: dict = {"size": [int(self.images[cam].shape[1]),
@@ -91,11 +152,20 @@ class Frame:
             if image_files and cam in image_files:
                 entry["image"] = image_files[cam]
             entry["fields"] = {name: t.to_json() for name, t in fields.items()}
+            if self.T_ref_needle:
+                entry["needles"] = {name: t.to_json()
+                                    for name, t in self.needle_truth.get(cam, {}).items()}
             cams[cam] = entry
-        return {"units": {"length": "m", "pixel": "px, centre of top-left pixel at (0, 0)"},
-                "reference": reference, "frame": self.frame, "seed": self.seed,
-                "fields": {n: {"T_ref_field": T.tolist()} for n, T in self.T_ref_field.items()},
-                "cameras": cams}
+        doc = {"units": {"length": "m", "pixel": "px, centre of top-left pixel at (0, 0)"},
+               "reference": reference, "frame": self.frame, "seed": self.seed,
+               "fields": {n: {"T_ref_field": T.tolist()} for n, T in self.T_ref_field.items()}}
+        for key, poses, pose_key in (("needles", self.T_ref_needle, "T_ref_needle"),
+                                     ("pads", self.T_ref_pad, "T_ref_pad"),
+                                     ("grippers", self.T_ref_tool, "T_ref_tool")):
+            if poses:
+                doc[key] = {n: {pose_key: T.tolist()} for n, T in poses.items()}
+        doc["cameras"] = cams
+        return doc
 
 
 @dataclass
@@ -106,6 +176,61 @@ class _Patch:
     alpha: np.ndarray      # coverage 0..1, h x w float32
     depth: float           # metres along the optical axis, for ordering
     owner: int
+
+
+@dataclass
+class _Job:
+    """Pieces of one object ray-cast in one pass: ``kind`` names the caster, ``boxes``
+    (m x 4) are the pieces' pixel boxes, ``par`` the caster's parameters (those named in
+    ``per_piece`` have one row per piece), and ``axis`` (m x k x 3, camera frame) points
+    within ``margin`` (m) of which each piece lies (which pieces may reach under a pad)."""
+
+    code: int
+    kind: str
+    boxes: np.ndarray
+    par: dict
+    axis: np.ndarray
+    margin: float
+    per_piece: tuple[str, ...] = ()
+
+
+def _batches(jobs: list[_Job]) -> list[_Job]:
+    """Jobs as cast: many small pieces in one gathered pass (the Python overhead of one
+    pass per piece would dominate), large or few pieces one by one (padding them all to
+    the largest box would waste samples)."""
+    out = []
+    for job in jobs:
+        b = job.boxes
+        if len(b) <= 4 or ((b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])).max() > 4096:
+            for k in range(len(b)):
+                par = {n: (v[k:k + 1] if n in job.per_piece else v)
+                       for n, v in job.par.items()}
+                out.append(_Job(job.code, job.kind, b[k:k + 1], par, job.axis[k:k + 1],
+                                job.margin))
+        else:
+            out.append(job)
+    return out
+
+
+@dataclass
+class _Layer:
+    """The needles' and grippers' sample-level z-buffer over one box of one camera.
+
+    Sample (i, j) of the canvas sits at pixel ``(x0 - 0.5 + (j + 0.5) / s, y0 - 0.5 +
+    (i + 0.5) / s)``. ``inv`` is 1 / depth (1/m, depth along the optical axis) of the
+    nearest surface, 0 where there is none; ``own`` the code of the object it belongs to
+    (0 none, then the needles and grippers: ``codes``). ``pads`` are the pads drawn in
+    this view, which hide what lies under them.
+    """
+
+    x0: int
+    y0: int
+    s: int
+    inv: np.ndarray
+    own: np.ndarray
+    codes: dict[str, int]
+    patch: _Patch | None
+    pads: list = field(default_factory=list)
 
 
 class _CameraState:
@@ -129,6 +254,20 @@ class _CameraState:
         illum = 1.0 + gx * (u / w - 0.5) + gy * (v / h - 0.5)
         self.illumination = np.clip(illum, 0.0, None).astype(np.float32)
         self.background = (imaging.background * self.illumination).astype(np.float32)
+
+    def sub_rays_xy(self, x0: int, y0: int, x1: int, y1: int, s: int
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`sub_rays` as two one-channel arrays (x, y), which OpenCV's arithmetic
+        takes without copying."""
+        if s == 1:
+            return cv2.split(np.ascontiguousarray(self.rays[y0:y1, x0:x1]))
+        h, w = self.rays.shape[:2]
+        px0, py0, px1, py1 = max(x0 - 1, 0), max(y0 - 1, 0), min(x1 + 1, w), min(y1 + 1, h)
+        size = ((px1 - px0) * s, (py1 - py0) * s)
+        ox, oy = (x0 - px0) * s, (y0 - py0) * s
+        return tuple(cv2.resize(c, size, interpolation=cv2.INTER_LINEAR)
+                     [oy:oy + (y1 - y0) * s, ox:ox + (x1 - x0) * s]
+                     for c in cv2.split(np.ascontiguousarray(self.rays[py0:py1, px0:px1])))
 
     def sub_rays(self, x0: int, y0: int, x1: int, y1: int, s: int) -> np.ndarray:
         """Normalised rays of the s x s samples of every pixel in [x0, x1) x [y0, y1).
@@ -188,7 +327,7 @@ class SceneRenderer:
     first use and kept. ``render`` is thread-safe to call from one worker thread at a time.
     """
 
-    def __init__(self, scene: Scene) -> None:
+    def __init__(self, scene: Scene, needle_points: int = NEEDLE_TRUTH_POINTS) -> None:
         self.scene = scene
         self._cams: dict[str, _CameraState] = {}
         self._tex: dict[str, _Texture] = {}
@@ -201,6 +340,16 @@ class SceneRenderer:
         for b in scene.blots:
             if b.placement not in names:
                 raise RenderError(f"blot {b.name!r}: unknown placement {b.placement!r}")
+        posed = [p.name for p in scene.placements] + [
+            o.name for o in (*scene.needles, *scene.pads, *scene.grippers)]
+        twice = sorted({n for n in posed if posed.count(n) > 1})
+        if twice:
+            raise RenderError(f"placements, needles, pads and grippers share one name space "
+                              f"(render poses are keyed by name); repeated: {twice}")
+        _check_objects(scene)
+        if needle_points < 2:
+            raise RenderError(f"needle_points must be >= 2, got {needle_points}")
+        self.needle_points = int(needle_points)
 
     # -- cached state -----------------------------------------------------------------
     def _camera(self, name: str) -> _CameraState:
@@ -227,30 +376,44 @@ class SceneRenderer:
                cameras: tuple[str, ...] | None = None) -> Frame:
         """Render every camera (or ``cameras``) of the rig.
 
-        ``poses`` overrides placements' ``T_ref_field`` by placement name (the simulated
-        cell moves fields this way); ``frame`` selects the noise draw.
+        ``poses`` overrides placements' ``T_ref_field``, needles' ``T_ref_needle``, pads'
+        ``T_ref_pad`` and grippers' ``T_ref_tool`` by name (the simulated cell moves them
+        this way); ``frame`` selects the noise draw.
         """
+        sc = self.scene
         poses = dict(poses or {})
-        unknown = set(poses) - {p.name for p in self.scene.placements}
+        objects = sc.object_poses()
+        unknown = set(poses) - {p.name for p in sc.placements} - set(objects)
         if unknown:
-            raise RenderError(f"poses given for unknown placements {sorted(unknown)}")
+            raise RenderError(f"poses given for unknown placements or objects "
+                              f"{sorted(unknown)}")
         T_ref = {p.name: np.asarray(poses.get(p.name, p.T_ref_field), dtype=float)
-                 for p in self.scene.placements}
-        images, truth, times = {}, {}, {}
-        names = cameras or tuple(self.scene.rig.names)
+                 for p in sc.placements}
+        T_obj = {n: np.asarray(poses.get(n, T), dtype=float) for n, T in objects.items()}
+        for n, T in T_obj.items():
+            if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+                raise RenderError(f"pose of {n!r} must be a finite 4x4 transform")
+        images, truth, needle_truth, times = {}, {}, {}, {}
+        names = cameras or tuple(sc.rig.names)
         for cam_name in names:
             t0 = time.perf_counter()
             # the noise draw belongs to the camera, whichever cameras this call renders
-            ci = self.scene.rig.names.index(self.scene.rig[cam_name].name)
-            img, tr = self._render_camera(cam_name, T_ref, frame, ci)
+            ci = sc.rig.names.index(sc.rig[cam_name].name)
+            img, tr, ntr = self._render_camera(cam_name, T_ref, T_obj, frame, ci)
             images[cam_name], truth[cam_name] = img, tr
+            if sc.needles:
+                needle_truth[cam_name] = ntr
             times[cam_name] = time.perf_counter() - t0
         return Frame(images=images, T_ref_field=T_ref, truth=truth, frame=frame,
-                     seed=self.scene.seed, render_s=times)
+                     seed=sc.seed, render_s=times, needle_truth=needle_truth,
+                     T_ref_needle={n.name: T_obj[n.name] for n in sc.needles},
+                     T_ref_pad={p.name: T_obj[p.name] for p in sc.pads},
+                     T_ref_tool={g.name: T_obj[g.name] for g in sc.grippers})
 
     # -- one camera -------------------------------------------------------------------
-    def _render_camera(self, cam_name: str, T_ref: dict[str, np.ndarray], frame: int,
-                       cam_index: int) -> tuple[np.ndarray, dict[str, FieldTruth]]:
+    def _render_camera(self, cam_name: str, T_ref: dict[str, np.ndarray],
+                       T_obj: dict[str, np.ndarray], frame: int, cam_index: int
+                       ) -> tuple[np.ndarray, dict[str, FieldTruth], dict[str, NeedleTruth]]:
         st = self._camera(cam_name)
         cam = st.cam
         im = self.scene.imaging
@@ -263,9 +426,31 @@ class SceneRenderer:
         n_fields = len(self.scene.placements)
         for k, rod in enumerate(self.scene.rods):
             patches += self._rod_patches(st, rod, T_cam_ref, owner=n_fields + k + 1)
+        next_owner = n_fields + len(self.scene.rods) + 1
+        pads = []  # the pads drawn in this view, which also occlude in the object layer
+        for pad in self.scene.pads:
+            T = T_cam_ref @ T_obj[pad.name]
+            patch = self._pad_patch(st, pad, T, owner=next_owner)
+            next_owner += 1
+            if patch is not None:
+                patches.append(patch)
+                pads.append((pad, T, patch))
+        layer = None
+        if self.scene.needles or self.scene.grippers:
+            layer = self._object_layer(st, T_cam_ref, T_obj, pads, owner=next_owner)
+        if layer is not None and layer.patch is not None:
+            # The layer is resolved against the pads per sample, so it goes over all of
+            # them; against fields and rods it is ordered by its mean depth, as they are.
+            if pads:
+                layer.patch.depth = min(layer.patch.depth,
+                                        min(p.depth for _, _, p in pads) - 1e-9)
+            patches.append(layer.patch)
 
         signal = st.background.copy()
         owner = np.zeros(signal.shape, np.uint8)
+        # pixels that an object composited after the layer covers (needle visibility)
+        late = np.zeros(signal.shape, bool) if self.scene.needles else None
+        after_layer = False
         for p in sorted(patches, key=lambda p: -p.depth):
             h, w = p.alpha.shape
             sl = (slice(p.y0, p.y0 + h), slice(p.x0, p.x0 + w))
@@ -274,6 +459,10 @@ class SceneRenderer:
             sig *= 1.0 - p.alpha
             sig += p.value * illum
             owner[sl][p.alpha > 0.5] = p.owner
+            if late is not None:
+                if after_layer:
+                    late[sl] |= p.alpha > 0.5
+                after_layer |= layer is not None and p is layer.patch
         if im.blur_sigma_px > 0 and patches:
             self._blur(signal, patches, im.blur_sigma_px)
         if im.noisy:
@@ -285,7 +474,10 @@ class SceneRenderer:
             tr = self._field_truth(cam, pl, T_cam_ref @ T_ref[pl.name], owner, k + 1)
             if tr is not None:
                 truth[pl.name] = tr
-        return image, truth
+        needle_truth = {nd.name: self._needle_truth(cam, nd, T_cam_ref @ T_obj[nd.name],
+                                                    layer, late)
+                        for nd in self.scene.needles}
+        return image, truth, needle_truth
 
     def _blur(self, signal: np.ndarray, patches: list[_Patch], sigma: float) -> None:
         """Gaussian blur inside the union box of all objects (the background is smooth)."""
@@ -566,3 +758,564 @@ class SceneRenderer:
             alpha = cv2.resize(alpha, size, interpolation=cv2.INTER_AREA)
         mid = p0 + 0.5 * (f0 + f1) * axis
         return _Patch(x0, y0, val, alpha, float(mid[2]), owner)
+
+    # -- tissue pads ------------------------------------------------------------------
+    def _pad_patch(self, st: _CameraState, pad: TissuePad, T_cam_pad: np.ndarray,
+                   owner: int) -> _Patch | None:
+        """The pad as a plane patch: its level inside its rectangle, the incision's level
+        inside the incision's stroke; seen only from its +z side.
+
+        The pad is uniform away from its outline and its incision, where supersampling
+        changes nothing. So pixels are classified at their centres, and only short pieces
+        along the four edges and along the stroke (boxes as rods' pieces have) are
+        supersampled: the same image as supersampling the whole box, at a fraction of the
+        cost for a pad that fills much of the view.
+        """
+        cam = st.cam
+        o = -T_cam_pad[:3, :3].T @ T_cam_pad[:3, 3]   # camera centre in the pad frame
+        if o[2] <= 0:
+            return None
+        sx, sy = pad.size
+        corners = np.array([[-sx, -sy, 0], [sx, -sy, 0], [sx, sy, 0], [-sx, sy, 0]]) / 2
+        t = np.linspace(0.0, 1.0, 33)[:, None]
+        outline = np.concatenate([corners[k] + t * (corners[(k + 1) % 4] - corners[k])
+                                  for k in range(4)])
+        box = self._bbox(cam, transform_points(T_cam_pad, outline), pad=2)
+        if box is None:
+            return None
+        x0, y0, x1, y1 = box
+        s = self.scene.imaging.supersample
+        cc = transform_points(T_cam_pad, corners)
+        if cc[:, 2].min() <= NEAR:
+            # the pad reaches behind the camera: supersample it all, by plane coordinates
+            x, y = st.sub_rays_xy(x0, y0, x1, y1, s)
+            cover = _pad_hits(pad, T_cam_pad, cv2.merge([x, y]))[0].astype(np.float32)
+            alpha = cover if s == 1 else cv2.resize(cover, (x1 - x0, y1 - y0),
+                                                    interpolation=cv2.INTER_AREA)
+            edges = None
+        else:
+            # A ray meets the rectangle iff it lies inside the four planes through the
+            # camera centre and its edges: four affine maps of the normalised image.
+            edges = []
+            for k in range(4):
+                n = np.cross(cc[k], cc[(k + 1) % 4])
+                edges.append(n / (np.linalg.norm(n) * np.sign(n @ cc.mean(axis=0))))
+            px, py = cv2.split(np.ascontiguousarray(st.rays[y0:y1, x0:x1]))
+            alpha = _inside(px, py, edges).astype(np.float32)
+            if s > 1:
+                for bx in self._stroke_boxes(cam, T_cam_pad, [(corners[k, :2],
+                                             corners[(k + 1) % 4, :2], 0.0) for k in range(4)]):
+                    bx0, by0, bx1, by1 = _clip_box(bx, box)
+                    if bx1 > bx0:
+                        x, y = st.sub_rays_xy(bx0, by0, bx1, by1, s)
+                        alpha[by0 - y0:by1 - y0, bx0 - x0:bx1 - x0] = cv2.resize(
+                            _inside(x, y, edges).astype(np.float32), (bx1 - bx0, by1 - by0),
+                            interpolation=cv2.INTER_AREA)
+        if not alpha.any():
+            return None
+        val = alpha * np.float32(pad.level)
+        half = 0.5 * pad.incision_width
+        for bx in self._stroke_boxes(cam, T_cam_pad, [(*pad.incision, half)]):
+            bx0, by0, bx1, by1 = _clip_box(bx, box)
+            if bx1 <= bx0:
+                continue
+            x, y = st.sub_rays_xy(bx0, by0, bx1, by1, s)
+            hx, hy = _plane_xy(T_cam_pad, x, y)
+            cover = (_inside(x, y, edges) if edges is not None
+                     else (np.abs(hx) <= 0.5 * sx) & (np.abs(hy) <= 0.5 * sy))
+            # boxes overlap; each tests the whole stroke, so overlaps agree
+            v = np.where(_near_segment(hx, hy, pad.incision, half),
+                         np.float32(pad.incision_level), np.float32(pad.level)) * cover
+            if s > 1:
+                v = cv2.resize(v, (bx1 - bx0, by1 - by0), interpolation=cv2.INTER_AREA)
+            val[by0 - y0:by1 - y0, bx0 - x0:bx1 - x0] = v
+        return _Patch(x0, y0, val, alpha, float(cc[:, 2].mean()), owner)
+
+    def _stroke_boxes(self, cam: CameraModel, T_cam_pad: np.ndarray, strokes: list
+                      ) -> np.ndarray:
+        """Pixel boxes (m x 4) of short pieces (about 32 px) of straight strokes on the
+        pad: ``strokes`` is a list of (a, b, half_width), ends in pad x, y (m). Each box
+        holds its piece's stroke plus 2 px; together they cover every pixel the strokes
+        (or, for width 0, the lines) touch."""
+        out = []
+        for a, b, h in strokes:
+            a, b = np.asarray(a, float), np.asarray(b, float)
+            ends = transform_points(T_cam_pad, np.array([[*a, 0.0], [*b, 0.0]]))
+            n = 1
+            if ends[:, 2].min() > NEAR:
+                uv = cam.project(ends)
+                n = int(min(max(math.ceil(np.linalg.norm(uv[1] - uv[0]) / 32.0), 1), 256))
+            f = np.linspace(0.0, 1.0, n + 1)
+            along = a + f[:, None] * (b - a)
+            off = np.array([[dx, dy] for dx in (-h, h) for dy in (-h, h)])
+            pts = np.concatenate([along[:-1, None] + off, along[1:, None] + off], axis=1)
+            pts = np.concatenate([pts, np.zeros(pts.shape[:2] + (1,))], axis=2)
+            out.append(self._piece_boxes(cam, transform_points(T_cam_pad, pts.reshape(-1, 3))
+                                         .reshape(n, -1, 3)))
+        boxes = np.concatenate(out)
+        return boxes[(boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])]
+
+    # -- needles and grippers: one sample-level z-buffer ------------------------------
+    def _object_layer(self, st: _CameraState, T_cam_ref: np.ndarray,
+                      T_obj: dict[str, np.ndarray],
+                      pads: list[tuple[TissuePad, np.ndarray, _Patch]],
+                      owner: int) -> _Layer:
+        """Ray-cast every needle and gripper piece, each inside its own small box, into one
+        z-buffer of supersamples; a sample whose ray meets a drawn pad before the piece is
+        dropped (the pad, drawn beneath the layer, shows there).
+
+        Why a z-buffer: these objects touch and interleave. A needle lies on a pad (an
+        oblique pad's mean depth can be nearer than the needle on it), the jaws clamp the
+        wire from both sides (one jaw in front of it, one behind, both overlapping it in
+        the image), a driven needle is half inside the tissue. Ordering whole objects, or
+        pieces, by one depth gets each of these wrong somewhere; a depth test per
+        supersample gets them right, and edges stay anti-aliased because the test comes
+        before the box filter. Only these objects share the buffer (it spans the union of
+        their boxes); fields and rods keep the cheaper per-object order. Pads are planes
+        and need no buffer: a piece's hit samples are tested against them, and only for
+        pieces that reach below a pad's surface (nothing above a plane seen from its
+        front can be hidden by it).
+        """
+        cam = st.cam
+        s = self.scene.imaging.supersample
+        codes: dict[str, int] = {}
+        materials = [(0.0, 0.0, 1.0, True)]   # (level, specular, shininess, rod) by code
+        jobs: list[_Job] = []
+        for nd in self.scene.needles:
+            codes[nd.name] = code = len(materials)
+            materials.append((nd.level, nd.specular, nd.shininess, False))
+            jobs += self._needle_pieces(cam, nd, T_cam_ref @ T_obj[nd.name], code)
+        for g in self.scene.grippers:
+            codes[g.name] = code = len(materials)
+            materials.append((g.level, 0.0, 1.0, True))
+            jobs += self._gripper_pieces(cam, g, T_cam_ref @ T_obj[g.name], code)
+        jobs = [j for j in jobs if len(j.boxes)]
+        if not jobs:
+            return _Layer(0, 0, s, np.zeros((0, 0), np.float32), np.zeros((0, 0), np.int16),
+                          codes, None, pads)
+        allb = np.concatenate([j.boxes for j in jobs])
+        x0, y0 = int(allb[:, 0].min()), int(allb[:, 1].min())
+        x1, y1 = int(allb[:, 2].max()), int(allb[:, 3].max())
+        shape = ((y1 - y0) * s, (x1 - x0) * s)
+        inv = np.zeros(shape, np.float32)
+        val = np.zeros(shape, np.float32)
+        own = np.zeros(shape, np.int16)
+        drawn = False
+        for job in _batches(jobs):
+            boxes = job.boxes
+            if len(boxes) == 1:   # one piece: its own rays
+                r = st.sub_rays(*(int(v) for v in boxes[0]), s)
+                xs, ys, valid = r[None, ..., 0], r[None, ..., 1], True
+            else:                 # many small pieces: one pass over their gathered rays
+                jx0, jy0 = int(boxes[:, 0].min()), int(boxes[:, 1].min())
+                r = st.sub_rays(jx0, jy0, int(boxes[:, 2].max()), int(boxes[:, 3].max()), s)
+                xs, ys, valid = _gather(r, (boxes - [jx0, jy0, jx0, jy0]) * s)
+            hit, lam, c = _CASTERS[job.kind](xs, ys, **job.par)
+            hit &= valid & (lam > NEAR)
+            under = np.zeros(len(boxes), bool)
+            for _, T, _ in pads:
+                height = (job.axis - T[:3, 3]) @ T[:3, 2]   # above the pad's plane (m)
+                under |= height.min(axis=1) - job.margin < -1e-9
+            if under.any():
+                # samples whose ray meets a pad before the piece: under the tissue
+                at = np.nonzero(hit & under[:, None, None])
+                hidden = np.zeros(len(at[0]), bool)
+                for pad, T, _ in pads:
+                    hidden |= _pad_in_front(pad, T, xs[at], ys[at], lam[at])
+                hit[tuple(a[hidden] for a in at)] = False
+            linv = np.divide(np.float32(1.0), lam, out=np.zeros(lam.shape, np.float32),
+                             where=hit)
+            shade = _shade(materials[job.code], c)
+            sb = (boxes - [x0, y0, x0, y0]) * s
+            for k in range(len(sb)):
+                bx0, by0, bx1, by1 = (int(v) for v in sb[k])
+                sl = (slice(by0, by1), slice(bx0, bx1))
+                li = linv[k, :by1 - by0, :bx1 - bx0]
+                m = li > inv[sl]
+                if m.any():
+                    np.copyto(inv[sl], li, where=m)
+                    np.copyto(val[sl], shade[k, :by1 - by0, :bx1 - bx0], where=m)
+                    own[sl][m] = job.code
+                    drawn = True
+        if not drawn:
+            return _Layer(x0, y0, s, inv, own, codes, None, pads)
+        # ordered against fields and rods by the mean depth of the pieces' axes
+        depth = float(np.mean(np.concatenate([j.axis[..., 2].ravel() for j in jobs])))
+        value = val   # the shaded level where an object is, 0 elsewhere: premultiplied
+        alpha = (own > 0).astype(np.float32)
+        if s > 1:
+            size = (x1 - x0, y1 - y0)
+            value = cv2.resize(value, size, interpolation=cv2.INTER_AREA)
+            alpha = cv2.resize(alpha, size, interpolation=cv2.INTER_AREA)
+        return _Layer(x0, y0, s, inv, own, codes, _Patch(x0, y0, value, alpha, depth, owner),
+                      pads)
+
+    def _piece_boxes(self, cam: CameraModel, pts: np.ndarray) -> np.ndarray:
+        """Pixel boxes (m x 4: x0, y0, x1, y1, clipped to the image) of m point groups
+        (m x k x 3, camera frame), padded by 2 px; empty boxes come out with x1 <= x0."""
+        m, k = pts.shape[:2]
+        uv = cam.project(pts.reshape(-1, 3)).reshape(m, k, 2)
+        lo = np.floor(uv.min(axis=1)) - 2
+        hi = np.ceil(uv.max(axis=1)) + 3
+        behind = ~np.isfinite(lo).all(axis=1) | ~np.isfinite(hi).all(axis=1)
+        lo[behind] = 0.0   # a piece reaching behind the camera is not drawn
+        hi[behind] = 0.0
+        x0 = np.clip(lo[:, 0], 0, cam.width)
+        y0 = np.clip(lo[:, 1], 0, cam.height)
+        x1 = np.clip(hi[:, 0], 0, cam.width)
+        y1 = np.clip(hi[:, 1], 0, cam.height)
+        return np.stack([x0, y0, x1, y1], axis=1).astype(np.int64)
+
+    def _needle_pieces(self, cam: CameraModel, nd: NeedleObject, T: np.ndarray,
+                       code: int) -> list[_Job]:
+        """The wire as mitred chord pieces of the arc, plus flat caps at base and tip.
+
+        Chord bound: pieces span ``dphi`` with sagitta ``s = R_v (1 - cos(dphi / 2))`` no
+        larger than a tenth of the wire radius and 0.05 px at the needle's nearest point
+        (``SAGITTA_WIRE``, ``SAGITTA_PX``); the vertices sit on a circle of radius ``R_v =
+        R + s / 2``, so the drawn axis is within +-s/2 of the true arc everywhere. For the
+        CT-1 needle (R 13 mm, wire 1 mm) face-on 10 cm from a 520 px focal length camera
+        this is 41 pieces, s = 0.0096 mm (0.05 px; the pixel bound is the tighter one
+        there, the wire bound is 0.05 mm). Each piece is the wire's
+        cylinder about its chord, cut by the planes bisecting the angles at its ends
+        (mitre joints: adjacent pieces meet exactly, without gaps or overlaps).
+        """
+        needle = nd.needle
+        R, r, arc = needle.radius, 0.5 * needle.wire_diameter, needle.arc
+        coarse = transform_points(T, needle.point(np.linspace(0.0, arc, 33)))
+        if coarse[:, 2].max() <= NEAR + r:
+            return []
+        f = float(max(cam.K[0, 0], cam.K[1, 1]))
+        zmin = max(float(coarse[:, 2].min()) - r, NEAR)
+        sag = min(SAGITTA_WIRE * r, SAGITTA_PX * zmin / f)
+        Rv = R + 0.5 * sag
+        dphi = 2.0 * math.acos(1.0 - sag / Rv)
+        n = int(min(max(math.ceil(arc / dphi), 1), 2048))
+        phi = np.linspace(0.0, arc, n + 1)
+        V = transform_points(T, Rv * np.stack([np.cos(phi), np.sin(phi), 0 * phi], axis=1))
+        seg = V[1:] - V[:-1]
+        U = seg / np.linalg.norm(seg, axis=1, keepdims=True)
+        Bn = np.empty_like(V)                      # mitre plane normals at the vertices
+        Bn[0], Bn[-1] = U[0], U[-1]
+        mid = U[:-1] + U[1:]
+        Bn[1:-1] = mid / np.linalg.norm(mid, axis=1, keepdims=True)
+        cube = r * np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)])
+        pts = np.concatenate([V[:-1, None] + cube, V[1:, None] + cube], axis=1)
+        boxes = self._piece_boxes(cam, pts)
+        ok = ((V[:-1, 2] > NEAR + r) & (V[1:, 2] > NEAR + r)
+              & (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1]))
+        idx = np.flatnonzero(ok)
+        axis = np.stack([V[:-1], V[1:]], axis=1)
+        out = [_Job(code, "cylinder", boxes[idx], dict(
+            P0=V[idx], U=U[idx], r=r, N0=Bn[idx], c0=(Bn[idx] * V[idx]).sum(1),
+            N1=Bn[idx + 1], c1=(Bn[idx + 1] * V[idx + 1]).sum(1)), axis[idx], r,
+            ("P0", "U", "N0", "c0", "N1", "c1"))]
+        for k, vi in ((0, 0), (n - 1, n)):          # flat caps at the base and the tip
+            if ok[k]:
+                out.append(_Job(code, "disc", boxes[k:k + 1],
+                                dict(C=V[vi:vi + 1], N=U[k:k + 1], r=r), axis[k:k + 1], r))
+        return out
+
+    def _gripper_pieces(self, cam: CameraModel, g: Gripper, T: np.ndarray,
+                        code: int) -> list[_Job]:
+        """The two jaws (boxes in frame T) and the shaft (cylinder pieces, split as rods
+        are, with a flat cap at the jaw end)."""
+        out = []
+        half = 0.5 * g.jaw_width
+        R, t = T[:3, :3], T[:3, 3]
+        corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], float)
+        for side in (1.0, -1.0):
+            ya, yb = side * 0.5 * g.opening, side * (0.5 * g.opening + g.jaw_thickness)
+            lo = np.array([-half, min(ya, yb), -g.jaw_length])
+            hi = np.array([half, max(ya, yb), 0.0])
+            pts = transform_points(T, lo + corners * (hi - lo))
+            box = self._piece_boxes(cam, pts[None])
+            if box[0, 2] > box[0, 0] and box[0, 3] > box[0, 1]:
+                out.append(_Job(code, "box", box, dict(R=R, t=t, lo=lo, hi=hi),
+                                pts[None], 0.0))
+        p1 = transform_points(T, np.array([[0.0, 0.0, -g.jaw_length]]))[0]
+        p0 = transform_points(T, np.array([[0.0, 0.0, -g.jaw_length - g.shaft_length]]))[0]
+        axis = p1 - p0
+        u = axis / np.linalg.norm(axis)
+        ends = self._bbox(cam, np.stack([p0, p1]), pad=0)
+        if ends is None:
+            return out
+        n = max(1, min(64, max(ends[2] - ends[0], ends[3] - ends[1]) // 48))
+        e1 = np.cross(u, [1.0, 0.0, 0.0])
+        if np.linalg.norm(e1) < 0.1:
+            e1 = np.cross(u, [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(u, e1)
+        ang = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+        ring = g.shaft_radius * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2)
+        f = np.linspace(0.0, 1.0, n + 1)
+        along = f[:-1, None] + (f[1:] - f[:-1])[:, None] * np.linspace(0, 1, 5)[None]
+        pts = (p0 + along[..., None, None] * axis + ring).reshape(n, -1, 3)
+        boxes = self._piece_boxes(cam, pts)
+        ok = (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])
+        idx = np.flatnonzero(ok)
+        c, L = float(u @ p0), float(np.linalg.norm(axis))
+        ends_k = np.stack([p0 + f[:-1, None] * axis, p0 + f[1:, None] * axis], axis=1)
+        out.append(_Job(code, "cylinder", boxes[idx], dict(
+            P0=np.repeat(p0[None], len(idx), axis=0), U=np.repeat(u[None], len(idx), axis=0),
+            r=g.shaft_radius, N0=None, c0=c + f[idx] * L, N1=None, c1=c + f[idx + 1] * L),
+            ends_k[idx], g.shaft_radius, ("P0", "U", "c0", "c1")))
+        if ok[-1]:
+            out.append(_Job(code, "disc", boxes[-1:], dict(C=p1[None], N=u[None],
+                                                           r=g.shaft_radius),
+                            ends_k[-1:], g.shaft_radius))
+        return out
+
+    def _needle_truth(self, cam: CameraModel, nd: NeedleObject, T_cam_needle: np.ndarray,
+                      layer: _Layer | None, late: np.ndarray | None) -> NeedleTruth:
+        """Projection of K arc points and their visibility: the supersample nearest each
+        point's projection must not belong to another object nearer than the point (the
+        wire's own surface does not count), the ray to the point must not meet a pad
+        first, and no field or rod drawn over the layer may cover the point's pixel by
+        more than half."""
+        K = self.needle_points
+        phi = np.linspace(0.0, nd.needle.arc, K)
+        pc = transform_points(T_cam_needle, nd.needle.points(K))
+        uv = cam.project(pc)
+        vis = cam.in_image(uv) & (pc[:, 2] > NEAR)
+        idx = np.flatnonzero(vis)
+        if len(idx) and layer is not None and layer.own.size:
+            s = layer.s
+            hgt, wid = layer.own.shape
+            j = np.floor((uv[idx, 0] - layer.x0 + 0.5) * s).astype(int)
+            i = np.floor((uv[idx, 1] - layer.y0 + 0.5) * s).astype(int)
+            inb = (i >= 0) & (i < hgt) & (j >= 0) & (j < wid)
+            ii, jj = np.clip(i, 0, hgt - 1), np.clip(j, 0, wid - 1)
+            own = layer.own[ii, jj]
+            other = inb & (own != 0) & (own != layer.codes[nd.name])
+            nearer = layer.inv[ii, jj] > 1.0 / pc[idx, 2]
+            vis[idx[other & nearer]] = False
+        idx = np.flatnonzero(vis)
+        if len(idx) and layer is not None:
+            x, y, z = pc[idx, 0] / pc[idx, 2], pc[idx, 1] / pc[idx, 2], pc[idx, 2]
+            for pad, T, _ in layer.pads:
+                vis[idx[_pad_in_front(pad, T, x, y, z)]] = False
+        idx = np.flatnonzero(vis)
+        if len(idx) and late is not None:
+            ui = np.clip(np.rint(uv[idx, 0]).astype(int), 0, cam.width - 1)
+            vi = np.clip(np.rint(uv[idx, 1]).astype(int), 0, cam.height - 1)
+            vis[idx[late[vi, ui]]] = False
+        return NeedleTruth(T_cam_needle=T_cam_needle, phi=phi, points_px=uv, visible=vis)
+
+
+# -- ray casting of needle and gripper pieces -------------------------------------------
+# Rays are d = (x, y, 1) in the camera frame (x, y: undistorted normalised coordinates,
+# arrays m x H x W, one slab per piece), so a hit at ``lam`` d has depth ``lam`` along the
+# optical axis. Each caster returns (hit, lam, cos): cos is the cosine between the surface
+# normal and the ray, from which the layer shades the samples it keeps (``_shade``);
+# parameters come per piece (leading axis m) unless scalar.
+
+def _col(a: np.ndarray | float) -> np.ndarray:
+    """Per-piece values (m,) as float32 (m, 1, 1), for broadcasting over a piece's slab."""
+    return np.asarray(a, np.float32).reshape(-1, 1, 1)
+
+
+def _shade(material: tuple[float, float, float, bool], cos: np.ndarray) -> np.ndarray:
+    """Level (DN, unit illumination) of samples whose normal makes ``cos`` with the ray.
+
+    ``material`` = (level, specular, shininess, rod). Lit from the camera: a dim base
+    ``level (0.5 + 0.5 cos)`` plus a Blinn-Phong highlight; with the light at the camera the
+    half vector is the viewing direction, so the highlight is ``specular cos**shininess``.
+    ``rod``: the rods' shading, ``level (0.55 + 0.45 cos)``.
+    """
+    level, specular, shininess, rod = material
+    cos = np.clip(cos, 0.0, 1.0)
+    if rod:
+        return np.float32(level) * (0.55 + 0.45 * cos)
+    out = np.float32(level) * (0.5 + 0.5 * cos)
+    if specular > 0:
+        out += np.float32(specular) * cos ** np.float32(shininess)
+    return out
+
+
+def _cast_cylinder(x: np.ndarray, y: np.ndarray, *, P0, U, r, N0, c0, N1, c1):
+    """Front surface of the cylinder of radius ``r`` about the line through ``P0`` along
+    unit ``U``, kept between the planes ``N0 . X >= c0`` and ``N1 . X < c1`` (``N0 = N1 =
+    None``: both planes across the axis, normal ``U``).
+
+    With ``m = P0 - (P0 . U) U`` (the axis's offset from the camera, across the axis) and
+    ``w = m x U``, ``|lam d_perp - m|^2 = r^2`` has ``lam = (d . m - sqrt(q)) / a`` with
+    ``a = |d|^2 - (d . U)^2`` and ``q = r^2 a - (d . w)^2`` (Lagrange's identity: no
+    cancellation between two large terms, which float32 could not afford at 0.1 m for a
+    0.5 mm wire). The normal's cosine to the ray is ``sqrt(q) / (r |d|)``.
+    """
+    P0, U = np.asarray(P0, float), np.asarray(U, float)
+    M = P0 - (P0 * U).sum(1, keepdims=True) * U
+    W = np.cross(M, U)
+    dd = x * x + y * y + 1.0
+    du = _col(U[:, 0]) * x + _col(U[:, 1]) * y + _col(U[:, 2])
+    dm = _col(M[:, 0]) * x + _col(M[:, 1]) * y + _col(M[:, 2])
+    dw = _col(W[:, 0]) * x + _col(W[:, 1]) * y + _col(W[:, 2])
+    a = dd - du * du
+    q = np.float32(r * r) * a - dw * dw
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sq = np.sqrt(q)
+        lam = (dm - sq) / a
+        cos = sq / (np.float32(r) * np.sqrt(dd))
+    if N0 is None:     # planes across the axis (a rod's pieces): N0 = N1 = U
+        e0 = e1 = du
+    else:
+        N0, N1 = np.asarray(N0, float), np.asarray(N1, float)
+        e0 = _col(N0[:, 0]) * x + _col(N0[:, 1]) * y + _col(N0[:, 2])
+        e1 = _col(N1[:, 0]) * x + _col(N1[:, 1]) * y + _col(N1[:, 2])
+    hit = (q > 0) & (lam * e0 >= _col(c0)) & (lam * e1 < _col(c1))
+    return hit, lam, cos
+
+
+def _cast_disc(x: np.ndarray, y: np.ndarray, *, C, N, r):
+    """Flat disc of radius ``r`` centred at ``C`` with unit normal ``N`` (an end cap)."""
+    C, N = np.asarray(C, float), np.asarray(N, float)
+    dn = _col(N[:, 0]) * x + _col(N[:, 1]) * y + _col(N[:, 2])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lam = _col((C * N).sum(1)) / dn
+        cos = np.abs(dn) / np.sqrt(x * x + y * y + 1.0)
+    ex, ey, ez = lam * x - _col(C[:, 0]), lam * y - _col(C[:, 1]), lam - _col(C[:, 2])
+    hit = ex * ex + ey * ey + ez * ez <= np.float32(r * r)
+    return hit, lam, cos
+
+
+def _cast_box(x: np.ndarray, y: np.ndarray, *, R, t, lo, hi):
+    """Axis-aligned box [lo, hi] of the frame whose pose in the camera is (R, t): the slab
+    method in that frame; the cosine is the hit face's normal's to the ray."""
+    o = -R.T @ t                                   # camera centre in the box's frame
+    near = np.full(x.shape, -np.inf, np.float32)
+    far = np.full(x.shape, np.inf, np.float32)
+    cos = np.zeros(x.shape, np.float32)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for i in range(3):
+            di = np.float32(R[0, i]) * x + np.float32(R[1, i]) * y + np.float32(R[2, i])
+            inv_d = 1.0 / di
+            t1 = np.float32(lo[i] - o[i]) * inv_d
+            t2 = np.float32(hi[i] - o[i]) * inv_d
+            tmin, tmax = np.minimum(t1, t2), np.maximum(t1, t2)
+            entered = tmin > near
+            near = np.where(entered, tmin, near)
+            cos = np.where(entered, np.abs(di), cos)
+            far = np.minimum(far, tmax)
+        cos = cos / np.sqrt(x * x + y * y + 1.0)
+    hit = (near <= far) & (near > 0)
+    return hit, near, cos
+
+
+_CASTERS = {"cylinder": _cast_cylinder, "disc": _cast_disc, "box": _cast_box}
+
+
+def _gather(rays: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rays (x, y) of m sample boxes (m x 4, sample indices into ``rays``), padded to
+    one size (m x H x W), and the mask of each box's own samples."""
+    h = boxes[:, 3] - boxes[:, 1]
+    w = boxes[:, 2] - boxes[:, 0]
+    H, W = int(h.max()), int(w.max())
+    iy = np.minimum(boxes[:, 1, None] + np.arange(H), rays.shape[0] - 1)
+    ix = np.minimum(boxes[:, 0, None] + np.arange(W), rays.shape[1] - 1)
+    g = rays[iy[:, :, None], ix[:, None, :]]
+    valid = ((np.arange(H)[None, :, None] < h[:, None, None])
+             & (np.arange(W)[None, None, :] < w[:, None, None]))
+    return g[..., 0], g[..., 1], valid
+
+
+def _pad_hits(pad: TissuePad, T_cam_pad: np.ndarray, rays: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the rays (h x w x 2, contiguous float32) meet the pad's plane, in pad
+    coordinates (x, y, m), and the mask of rays that hit the pad's rectangle in front of
+    the camera. The plane is a homography of the normalised image (as for a field)."""
+    R = T_cam_pad[:3, :3]
+    o = -R.T @ T_cam_pad[:3, 3]
+    Rt = R.T
+    Hm = np.array([o[0] * Rt[2] - o[2] * Rt[0], o[1] * Rt[2] - o[2] * Rt[1], Rt[2]])
+    xy = cv2.perspectiveTransform(np.ascontiguousarray(rays), Hm)
+    hx, hy = xy[..., 0], xy[..., 1]
+    dz = (np.float32(Rt[2, 0]) * rays[..., 0] + np.float32(Rt[2, 1]) * rays[..., 1]
+          + np.float32(Rt[2, 2]))
+    sx, sy = pad.size
+    inside = (dz < 0) & (np.abs(hx) <= 0.5 * sx) & (np.abs(hy) <= 0.5 * sy)
+    return inside, hx, hy
+
+
+def _pad_in_front(pad: TissuePad, T_cam_pad: np.ndarray, x: np.ndarray, y: np.ndarray,
+                  lam: np.ndarray) -> np.ndarray:
+    """Mask of the rays d = (x, y, 1) (1-D) that meet the pad's rectangle at a depth
+    between 0 and ``lam`` (m): what lies at ``lam`` on them is hidden by the pad."""
+    R, t = T_cam_pad[:3, :3], T_cam_pad[:3, 3]
+    n = R[:, 2]
+    x, y = x.astype(float), y.astype(float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lp = float(n @ t) / (n[0] * x + n[1] * y + n[2])
+    ex, ey, ez = lp * x - t[0], lp * y - t[1], lp - t[2]
+    px = R[0, 0] * ex + R[1, 0] * ey + R[2, 0] * ez
+    py = R[0, 1] * ex + R[1, 1] * ey + R[2, 1] * ez
+    sx, sy = pad.size
+    return ((lp > 0) & (lp < lam) & (np.abs(px) <= 0.5 * sx) & (np.abs(py) <= 0.5 * sy))
+
+
+def _inside(x: np.ndarray, y: np.ndarray, edges: list[np.ndarray]) -> np.ndarray:
+    """Mask of rays d = (x, y, 1) on the inner side of every plane through the camera
+    centre with normal ``edges[k]`` (a convex polygon's cone)."""
+    m = None
+    for n in edges:
+        e = cv2.addWeighted(x, float(n[0]), y, float(n[1]), float(n[2]))
+        m = e if m is None else np.minimum(m, e, out=m)
+    return m >= 0
+
+
+def _clip_box(b: np.ndarray, box: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+    """Box ``b`` clipped to ``box``; empty (x1 <= x0) if they do not meet."""
+    x0, y0 = max(int(b[0]), box[0]), max(int(b[1]), box[1])
+    x1, y1 = min(int(b[2]), box[2]), min(int(b[3]), box[3])
+    return (x0, y0, x1, y1) if (x1 > x0 and y1 > y0) else (0, 0, 0, 0)
+
+
+def _plane_xy(T_cam_pad: np.ndarray, x: np.ndarray, y: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Pad-frame (x, y) where the rays d = (x, y, 1) meet the pad's plane z = 0 (a
+    homography of the normalised image, as for a field)."""
+    Rt = T_cam_pad[:3, :3].T
+    o = -Rt @ T_cam_pad[:3, 3]
+    H = np.array([o[0] * Rt[2] - o[2] * Rt[0], o[1] * Rt[2] - o[2] * Rt[1], Rt[2]])
+    w = cv2.addWeighted(x, float(H[2, 0]), y, float(H[2, 1]), float(H[2, 2]))
+    hx = cv2.addWeighted(x, float(H[0, 0]), y, float(H[0, 1]), float(H[0, 2]))
+    hy = cv2.addWeighted(x, float(H[1, 0]), y, float(H[1, 1]), float(H[1, 2]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return hx / w, hy / w
+
+
+def _near_segment(x: np.ndarray, y: np.ndarray, seg, half_width: float) -> np.ndarray:
+    """Mask of points (x, y) within ``half_width`` of the segment ``seg`` ((x0, y0),
+    (x1, y1)): a stroke with round ends."""
+    (ax, ay), (bx, by) = seg
+    ex, ey = bx - ax, by - ay
+    L2 = ex * ex + ey * ey
+    px, py = x - np.float32(ax), y - np.float32(ay)
+    if L2 > 0:
+        t = np.clip((px * np.float32(ex) + py * np.float32(ey)) * np.float32(1.0 / L2),
+                    0.0, 1.0)
+        px = px - t * np.float32(ex)
+        py = py - t * np.float32(ey)
+    return px * px + py * py <= np.float32(half_width * half_width)
+
+
+def _check_objects(scene: Scene) -> None:
+    """Refuse needle-driving objects the renderer cannot draw (RenderError)."""
+    def positive(what: str, **values: float) -> None:
+        bad = {k: v for k, v in values.items() if not (math.isfinite(v) and v > 0)}
+        if bad:
+            raise RenderError(f"{what}: must be finite and > 0: {bad}")
+
+    for nd in scene.needles:
+        positive(f"needle {nd.name!r}", shininess=nd.shininess)
+        if not (nd.specular >= 0 and nd.level >= 0):
+            raise RenderError(f"needle {nd.name!r}: level and specular must be >= 0")
+    for pad in scene.pads:
+        positive(f"pad {pad.name!r}", size_x=pad.size[0], size_y=pad.size[1],
+                 incision_width=pad.incision_width)
+    for g in scene.grippers:
+        positive(f"gripper {g.name!r}", jaw_length=g.jaw_length, jaw_width=g.jaw_width,
+                 jaw_thickness=g.jaw_thickness, shaft_radius=g.shaft_radius,
+                 shaft_length=g.shaft_length)
+        if not (math.isfinite(g.opening) and g.opening >= 0):
+            raise RenderError(f"gripper {g.name!r}: opening must be >= 0, got {g.opening}")

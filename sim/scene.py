@@ -1,8 +1,9 @@
-"""What a simulated scene holds: a camera rig, marker fields placed in it, occluders and
-the imaging settings. Built from a scene TOML file by ``oralnav.config.scene``.
+"""What a simulated scene holds: a camera rig, marker fields placed in it, occluders, the
+needle-driving objects (needles, tissue pads, grippers) and the imaging settings. Built
+from a scene TOML file by ``oralnav.config.scene``.
 
-All poses are in the rig's reference frame (``T_ref_field``), lengths in metres, angles
-in radians, image levels in digital numbers (DN, 0..255 for mono8).
+All poses are in the rig's reference frame (``T_ref_field``, ``T_ref_needle``...), lengths
+in metres, angles in radians, image levels in digital numbers (DN, 0..255 for mono8).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import numpy as np
 
 from oralnav.control.camera import Rig
 from oralnav.control.markers import MarkerField
+from oralnav.control.needle import Needle
 
 
 @dataclass(frozen=True)
@@ -90,8 +92,71 @@ class Blot:
 
 
 @dataclass(frozen=True, eq=False)
+class NeedleObject:
+    """A suture needle: a metallic torus segment, the wire (radius ``needle.wire_diameter``
+    / 2) swept along ``needle``'s arc (frame N of ``oralnav.control.needle``: origin at the
+    arc centre, x toward the base, y toward the body, z the arc's normal).
+
+    ``T_ref_needle`` is the pose of N in the reference frame. Shading, lit from the camera
+    (the endoscope's light is coaxial): ``level * (0.5 + 0.5 c) + specular * c**shininess``
+    DN, where ``c`` is the cosine between the surface normal and the viewing ray (a dim
+    metallic base plus a Blinn-Phong highlight, which for a light at the camera peaks
+    where the normal faces the camera: bright streaks along the wire).
+    """
+
+    name: str
+    needle: Needle
+    T_ref_needle: np.ndarray
+    level: float = 70.0
+    specular: float = 180.0
+    shininess: float = 20.0
+
+
+@dataclass(frozen=True, eq=False)
+class TissuePad:
+    """A flat, light suturing pad with a dark straight incision line drawn on it.
+
+    The pad's surface is the z = 0 plane of its frame (``T_ref_pad``), +z out of the
+    tissue; it spans ``size`` = (x, y) extents (m) centred on the frame origin and is seen
+    only from its +z side. The incision runs from ``incision[0]`` to ``incision[1]`` (pad
+    x, y, m) with width ``incision_width`` (m, round ends), drawn at ``incision_level``.
+    """
+
+    name: str
+    T_ref_pad: np.ndarray
+    size: tuple[float, float] = (0.06, 0.04)
+    level: float = 170.0
+    incision: tuple[tuple[float, float], tuple[float, float]] = ((-0.025, 0.0), (0.025, 0.0))
+    incision_width: float = 0.0008
+    incision_level: float = 35.0
+
+
+@dataclass(frozen=True, eq=False)
+class Gripper:
+    """A needle gripper (the paper's frame T, seed 002 Fig. 3): origin at the tip, y
+    perpendicular to the jaws, z along the gripper toward the tip.
+
+    Two jaws, boxes ``jaw_width`` (along x) by ``jaw_thickness`` (along y) by
+    ``jaw_length`` (z from ``-jaw_length`` to 0), whose inner faces lie at y = +-opening/2
+    (``opening`` = the needle's wire diameter holds it); and a shaft, a cylinder of
+    ``shaft_radius`` along -z from ``z = -jaw_length`` for ``shaft_length``. Lengths in m.
+    """
+
+    name: str
+    T_ref_tool: np.ndarray
+    jaw_length: float = 0.010
+    jaw_width: float = 0.0025
+    jaw_thickness: float = 0.0012
+    opening: float = 0.001
+    shaft_radius: float = 0.003
+    shaft_length: float = 0.05
+    level: float = 110.0
+
+
+@dataclass(frozen=True, eq=False)
 class Scene:
-    """A complete scene: the rig, the placed fields, occluders, imaging and the seed."""
+    """A complete scene: the rig, the placed fields, occluders, the needle-driving objects,
+    imaging and the seed."""
 
     rig: Rig
     placements: tuple[Placement, ...]
@@ -100,6 +165,9 @@ class Scene:
     imaging: Imaging = Imaging()
     seed: int = 0
     source: str = ""
+    needles: tuple[NeedleObject, ...] = ()
+    pads: tuple[TissuePad, ...] = ()
+    grippers: tuple[Gripper, ...] = ()
 
     def placement(self, name: str) -> Placement:
         for p in self.placements:
@@ -107,3 +175,15 @@ class Scene:
                 return p
         raise KeyError(f"scene has no placement {name!r}; it has "
                        f"{[p.name for p in self.placements]}")
+
+    def object_poses(self) -> dict[str, np.ndarray]:
+        """The pose of every needle, pad and gripper in the reference frame, by name
+        (``T_ref_needle``, ``T_ref_pad``, ``T_ref_tool``)."""
+        out: dict[str, np.ndarray] = {}
+        for n in self.needles:
+            out[n.name] = n.T_ref_needle
+        for p in self.pads:
+            out[p.name] = p.T_ref_pad
+        for g in self.grippers:
+            out[g.name] = g.T_ref_tool
+        return out

@@ -71,7 +71,7 @@ def test_examples_are_shipped():
     """Issue 2 (every shipped file loads): the example scenes exist (guards the
     parametrised test below against an empty glob)."""
     assert {p.name for p in EXAMPLES} >= {"stereo_cell.toml", "stereo_occluded.toml",
-                                          "endoscope_view.toml"}
+                                          "endoscope_view.toml", "needle_pad.toml"}
 
 
 @pytest.mark.parametrize("path", EXAMPLES, ids=[p.stem for p in EXAMPLES])
@@ -81,7 +81,7 @@ def test_every_example_scene_loads(path, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     scene = load_scene(path)
     assert isinstance(scene, Scene) and scene.source == str(path)
-    assert scene.placements
+    assert scene.placements or scene.needles or scene.pads or scene.grippers
     for p in scene.placements:
         assert p.field.renderable
         assert p.T_ref_field.shape == (4, 4)
@@ -148,8 +148,8 @@ BROKEN = {
                     ("unknown key",)),
     "unknown_section": (GOOD + "\n[lights.key]\nlevel = 3.0\n", ": lights:", ("unknown key",)),
     "missing_rig": (_edit(f'rig = "{STEREO}"\n', ""), ": rig:", ("Field required",)),
-    "no_placements": (GOOD.split("[placements.robot]")[0], ": placements:",
-                      ("Field required",)),
+    "no_objects": (GOOD.split("[placements.robot]")[0], ": placements:",
+                   ("a scene needs at least one object",)),
     "supersample_bound": (_edit("supersample = 2", "supersample = 5"),
                           "[imaging] supersample:", ("less than or equal to 4",)),
     "seed_negative": (_edit("seed = 4", "seed = -1"), ": seed:", ("greater than or equal",)),
@@ -230,3 +230,113 @@ def test_points_field_cannot_be_placed(tmp_path):
                                       '[placements.jaw]\nfield = "jaw"\n'
                                       'translation = [0.0, 0.0, 0.2]\n')
     _expect(path, "[placements.jaw] field:", "points surface", "cannot render")
+
+
+# -- needles, pads and grippers (issue 7, part 1) -----------------------------------------
+NEEDLE_GOOD = f"""\
+rig = "{CONFIG / 'rigs' / 'endoscope.toml'}"
+fields = "{CELL}"
+
+[pads.pad]
+translation = [0.0, 0.0, 0.1]
+euler_xyz_deg = [200.0, 0.0, 0.0]
+size = [0.06, 0.04]
+incision = [[-0.025, -0.01], [0.025, -0.01]]
+
+[needles.ct1]
+radius_mm = 13.0
+wire_diameter_mm = 1.0
+arc_deg = 180.0
+translation = [0.0, 0.0, 0.099]
+euler_xyz_deg = [200.0, 0.0, 0.0]
+
+[grippers.driver]
+T_ref_tool = [[1.0, 0.0, 0.0, -0.02], [0.0, 1.0, 0.0, 0.0],
+              [0.0, 0.0, 1.0, 0.09], [0.0, 0.0, 0.0, 1.0]]
+jaw_length = 0.012
+opening = 0.002
+"""
+
+
+def test_needle_pad_example_values():
+    """Issue 7 part 1 (scene keys): needle_pad.toml holds a CT-1 needle (radius 13 mm,
+    1 mm wire, a semicircle) lying on a pad (its centre half the wire above the pad's
+    surface, its plane the pad's), the pad's 5 cm incision, and an open gripper; sizes in
+    mm and degrees in the file come out in metres and radians."""
+    scene = load_scene(CONFIG / "examples" / "needle_pad.toml")
+    assert scene.rig.reference == "endoscope" and scene.placements == ()
+    (nd,), (pad,), (g,) = scene.needles, scene.pads, scene.grippers
+    assert (nd.name, pad.name, g.name) == ("ct1", "pad", "driver")
+    assert nd.needle.radius == pytest.approx(0.013) and nd.needle.arc == pytest.approx(np.pi)
+    assert nd.needle.wire_diameter == pytest.approx(0.001)
+    T_pad_needle = np.linalg.inv(pad.T_ref_pad) @ nd.T_ref_needle
+    np.testing.assert_allclose(T_pad_needle[:3, 3], [0.002, 0.006, 0.0005], atol=1e-6)
+    np.testing.assert_allclose(T_pad_needle[:3, :3], np.eye(3), atol=1e-9)
+    (a, b) = pad.incision
+    assert np.hypot(b[0] - a[0], b[1] - a[1]) == pytest.approx(0.05)
+    assert 0.08 <= pad.T_ref_pad[2, 3] <= 0.12   # about 10 cm from the endoscope
+    assert g.opening == 0.003 and g.shaft_radius == 0.003
+
+
+def test_needle_scene_template_loads(tmp_path):
+    """Issue 7 part 1 (scene keys): the template the broken cases below edit loads, with
+    defaults for what it leaves out, and a scene of needle-driving objects only needs no
+    placement."""
+    scene = load_scene(_write(tmp_path, "n.toml", NEEDLE_GOOD))
+    (nd,), (pad,), (g,) = scene.needles, scene.pads, scene.grippers
+    assert nd.level == 70.0 and nd.specular == 180.0 and nd.shininess == 20.0
+    assert pad.level == 170.0 and pad.incision_width == 0.0008
+    assert g.jaw_length == 0.012 and g.opening == 0.002 and g.jaw_width == 0.0025
+    np.testing.assert_array_equal(g.T_ref_tool[:3, 3], [-0.02, 0.0, 0.09])
+
+
+def _nedit(old: str, new: str) -> str:
+    return edit(old, new, NEEDLE_GOOD)
+
+
+NEEDLE_BROKEN = {
+    "needle_unknown_key": (_nedit("radius_mm = 13.0", "radius = 0.013"),
+                           "[needles.ct1] radius:", ("unknown key",)),
+    "needle_radius_zero": (_nedit("radius_mm = 13.0", "radius_mm = 0.0"),
+                           "[needles.ct1] radius_mm:", ("greater than 0",)),
+    "needle_wire_too_thick": (_nedit("wire_diameter_mm = 1.0", "wire_diameter_mm = 3.0")
+                              .replace("radius_mm = 13.0", "radius_mm = 2.0"),
+                              "[needles.ct1] wire_diameter_mm:", ("below radius_mm",)),
+    "needle_arc_too_long": (_nedit("arc_deg = 180.0", "arc_deg = 400.0"),
+                            "[needles.ct1] arc_deg:", ("less than or equal to 360",)),
+    "needle_no_pose": (_nedit('translation = [0.0, 0.0, 0.099]\neuler_xyz_deg = [200.0, 0.0, '
+                              '0.0]\n', ""), "[needles] ct1:",
+                       ("T_ref_needle", "not both or neither")),
+    "needle_mm_as_string": (_nedit("wire_diameter_mm = 1.0", 'wire_diameter_mm = "1.0"'),
+                            "[needles.ct1] wire_diameter_mm:", ("valid number",)),
+    "pad_size_one": (_nedit("size = [0.06, 0.04]", "size = [0.06]"),
+                     "[pads.pad] size[1]:", ("Field required",)),
+    "pad_size_negative": (_nedit("size = [0.06, 0.04]", "size = [0.06, -0.04]"),
+                          "[pads.pad] size[1]:", ("greater than 0",)),
+    "pad_no_incision": (_nedit("incision = [[-0.025, -0.01], [0.025, -0.01]]\n", ""),
+                        "[pads.pad] incision:", ("Field required",)),
+    "pad_incision_outside": (_nedit("[0.025, -0.01]]", "[0.035, -0.01]]"),
+                             "[pads.pad] incision:", ("outside the pad", "0.035")),
+    "pad_incision_shape": (_nedit("[[-0.025, -0.01], [0.025, -0.01]]", "[[-0.025, -0.01]]"),
+                           "[pads.pad] incision[1]:", ("Field required",)),
+    "gripper_negative_jaw": (_nedit("jaw_length = 0.012", "jaw_length = -0.012"),
+                             "[grippers.driver] jaw_length:", ("greater than 0",)),
+    "gripper_unknown_key": (_nedit("opening = 0.002", "opening_mm = 2.0"),
+                            "[grippers.driver] opening_mm:", ("unknown key",)),
+    "gripper_T_not_rigid": (_nedit("[0.0, 0.0, 0.0, 1.0]]", "[0.0, 0.0, 0.1, 1.0]]"),
+                            "[grippers.driver] T_ref_tool:", ("bottom row",)),
+    "name_clash": (_nedit("[grippers.driver]", "[grippers.ct1]"), "[grippers] ct1:",
+                   ("already used in [needles]",)),
+    "unknown_object_section": (NEEDLE_GOOD + "\n[sutures.s]\nlength = 0.1\n", ": sutures:",
+                               ("unknown key",)),
+}
+
+
+@pytest.mark.parametrize("case", list(NEEDLE_BROKEN))
+def test_broken_needle_scene_is_one_clear_error(tmp_path, case):
+    """Issue 7 part 1 (bad input): a bad needle, pad or gripper key (unknown, out of
+    bounds, a wire thicker than the needle's radius, an incision off the pad, a pose given
+    neither or twice or not rigid, a name used twice) gives one ConfigError naming the
+    file, the section and key, and the reason."""
+    text, where, reasons = NEEDLE_BROKEN[case]
+    _expect(_write(tmp_path, f"{case}.toml", text), where, *reasons)

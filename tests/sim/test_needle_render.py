@@ -1,0 +1,332 @@
+"""Scene renderer, needle-driving objects (issue 7 part 1, "Scene"): a suture needle as a
+thin metallic arc, a tissue pad with an incision line, a gripper's jaws and shaft, and the
+needle's ground truth per camera. Each test's docstring names the requirement it checks.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from oralnav.config.scene import load_scene
+from oralnav.control.camera import CameraModel, Rig
+from oralnav.control.geometry import make_transform, transform_from_euler, transform_points
+from oralnav.control.needle import Needle
+from oralnav.sim.render import RenderError, SceneRenderer
+from oralnav.sim.scene import Gripper, Imaging, NeedleObject, Scene, TissuePad
+
+ROOT = Path(__file__).resolve().parents[2]
+CT1 = Needle(radius=0.013, wire_diameter=0.001, arc=math.pi)   # seed 002's needle
+F = 520.0
+# An endoscope-like camera, 640 x 480, with some barrel distortion (the renderer must put
+# the wire where the camera model projects it, distortion included).
+CAM = CameraModel("endoscope", (640, 480), np.array([[F, 0.0, 318.0], [0.0, F, 242.0],
+                                                      [0.0, 0.0, 1.0]]),
+                  np.array([-0.12, 0.03, 0.0005, -0.0003, 0.0]))
+RIG = Rig(reference="endoscope", cameras={"endoscope": CAM})
+CLEAN = Imaging(supersample=2, background=0.0)        # no blur, no noise, black background
+
+
+def _scene(imaging: Imaging = CLEAN, **objects) -> Scene:
+    return Scene(rig=RIG, placements=(), imaging=imaging, **objects)
+
+
+def _profile(img: np.ndarray, p: np.ndarray, direction: np.ndarray, half: float = 8.0,
+             step: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Image values (bilinear) along ``direction`` (unit, px) through ``p`` (px)."""
+    ts = np.arange(-half, half + step / 2, step)
+    pts = (p + ts[:, None] * direction).astype(np.float32)
+    prof = cv2.remap(img.astype(np.float32), pts[:, 0].reshape(1, -1),
+                     pts[:, 1].reshape(1, -1), cv2.INTER_LINEAR).ravel()
+    return ts, prof
+
+
+def _normals(uv: np.ndarray) -> np.ndarray:
+    """Unit normals (N-2 x 2) of a projected polyline at its interior points."""
+    tang = uv[2:] - uv[:-2]
+    tang /= np.linalg.norm(tang, axis=1, keepdims=True)
+    return np.stack([-tang[:, 1], tang[:, 0]], axis=1)
+
+
+def _grasp(T_ref_needle: np.ndarray, phi: float, depth: float = 0.003) -> np.ndarray:
+    """T_ref_tool of a gripper holding the needle at arc angle ``phi`` (seed 002, Fig. 3):
+    the jaws across the wire (tool y = the needle plane's normal), the gripper's z pointing
+    to the arc's centre, the wire ``depth`` behind the tip."""
+    radial = np.array([math.cos(phi), math.sin(phi), 0.0])
+    z, y = -radial, np.array([0.0, 0.0, 1.0])
+    T_N_T = make_transform(np.stack([np.cross(y, z), y, z], axis=1),
+                           CT1.radius * radial + depth * z)
+    return T_ref_needle @ T_N_T
+
+
+# -- the needle's image --------------------------------------------------------------------
+def test_needle_pixels_lie_on_the_projected_arc():
+    """Issue 7 part 1 (needle render): the rendered wire is centred on the camera model's
+    projection of the needle's arc (distortion included) to a small fraction of a pixel,
+    and is as wide as the wire's projected diameter (within 1 px): the torus segment is
+    where and as thick as the needle says. Needle pieces are chords whose sagitta the
+    renderer bounds far below a pixel, so no systematic offset may show."""
+    T = transform_from_euler([0.004, 0.006, 0.09], [170.0, 15.0, 30.0])
+    frame = SceneRenderer(_scene(needles=(NeedleObject("n", CT1, T),))).render()
+    img = frame.images["endoscope"]
+    truth = frame.needle_truth["endoscope"]["n"]
+    uv = truth.points_px
+    depth = transform_points(T, CT1.points(len(uv)))[:, 2]
+    offsets, width_err = [], []
+    for k, n in zip(range(3, len(uv) - 3), _normals(uv)[2:-2], strict=True):
+        ts, prof = _profile(img, uv[k], n)
+        offsets.append((prof * ts).sum() / prof.sum())   # centroid of the wire's light
+        above = np.flatnonzero(prof > 0.25 * 70.0)       # silhouette: half coverage of the
+        width_err.append((above[-1] - above[0]) * (ts[1] - ts[0])  # dim edge (level / 2)
+                         - CT1.wire_diameter * F / depth[k])
+    offsets, width_err = np.abs(offsets), np.abs(width_err)
+    assert offsets.mean() < 0.06 and offsets.max() < 0.25, offsets.max()
+    assert width_err.max() < 1.0, width_err.max()
+    # nothing drawn far from the needle: the background stays exact
+    assert np.all(img[:40, :] == 0) and np.all(img[-40:, :] == 0)
+
+
+def test_needle_shading_has_specular_streaks():
+    """Issue 7 part 1 (needle render): a thin metallic arc with specular highlights: with
+    the light at the camera, the wire is brightest along its middle where it lies across
+    the view, far above its dim base level, and the highlight fades where the wire turns
+    toward the camera."""
+    T = transform_from_euler([0.0, 0.0, 0.09], [180.0 + 40.0, 0.0, 0.0])  # tilted 40 deg
+    nd = NeedleObject("n", CT1, T, level=70.0, specular=180.0, shininess=20.0)
+    frame = SceneRenderer(_scene(needles=(nd,))).render()
+    img = frame.images["endoscope"]
+    uv = frame.needle_truth["endoscope"]["n"].points_px
+    tangent = np.stack([-np.sin(np.linspace(0, np.pi, len(uv))),
+                        np.cos(np.linspace(0, np.pi, len(uv))), np.zeros(len(uv))], axis=1)
+    view = transform_points(T, CT1.points(len(uv)))
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    across = np.abs(np.einsum("ij,ij->i", tangent @ T[:3, :3].T, view))  # |t . v|
+    peak = np.array([_profile(img, uv[k], n, half=4.0)[1].max()
+                     for k, n in zip(range(1, len(uv) - 1), _normals(uv), strict=True)])
+    across = across[1:-1]
+    assert peak[across < 0.1].min() > 180.0      # a highlight where the wire lies across
+    assert peak[across > 0.55].max() < 120.0     # none where it turns toward the camera
+
+
+# -- ground truth --------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def example() -> tuple[Scene, SceneRenderer]:
+    scene = load_scene(ROOT / "config" / "examples" / "needle_pad.toml")
+    return scene, SceneRenderer(scene)
+
+
+def test_truth_is_the_camera_models_projection(example):
+    """Issue 7 part 1 (ground truth): every frame records each needle's pose in every
+    camera and the projection of K arc points, exactly CameraModel's projection of
+    Needle.points(K) through that pose (the shipped example: the endoscope rig with strong
+    barrel distortion); render(poses=...) moves the needle by name and the truth follows."""
+    scene, renderer = example
+    cam = scene.rig["endoscope"]
+    nd = scene.needles[0]
+    T_moved = nd.T_ref_needle @ transform_from_euler([0.002, -0.001, 0.0], [0.0, 0.0, 20.0])
+    for poses in ({}, {nd.name: T_moved}):
+        frame = renderer.render(poses=poses)
+        T_ref = poses.get(nd.name, nd.T_ref_needle)
+        np.testing.assert_array_equal(frame.T_ref_needle[nd.name], T_ref)
+        truth = frame.needle_truth["endoscope"][nd.name]
+        np.testing.assert_allclose(truth.T_cam_needle, cam.T_cam_ref @ T_ref, atol=1e-15)
+        K = renderer.needle_points
+        assert K == 64 and truth.points_px.shape == (K, 2)
+        np.testing.assert_allclose(truth.phi, np.linspace(0.0, np.pi, K))
+        expected = cam.project_from(truth.T_cam_needle, nd.needle.points(K))
+        np.testing.assert_allclose(truth.points_px, expected, atol=1e-9)
+        assert truth.visible.all() and truth.visible_fraction == 1.0   # on the pad, in view
+    doc = frame.truth_json("endoscope", {"endoscope": "endoscope.png"})
+    entry = doc["cameras"]["endoscope"]["needles"][nd.name]
+    assert entry["visible_fraction"] == 1.0 and len(entry["points_px"]) == 64
+    assert doc["needles"][nd.name]["T_ref_needle"] == T_moved.tolist()
+    assert set(doc["pads"]) == {"pad"} and set(doc["grippers"]) == {"driver"}
+    assert doc["cameras"]["endoscope"]["fields"] == {}
+
+
+@pytest.mark.parametrize("facing", [True, False], ids=["normal_to_camera", "normal_away"])
+def test_jaws_hide_the_needle_where_they_cover_it(facing):
+    """Issue 7 part 1 (visibility): a gripper holding the needle, seen across its jaws:
+    the near jaw hides the wire over the jaw's width, and the visibility flags drop for
+    exactly the arc points under it, whichever side the camera sees the grasp from (one
+    jaw is in front of the wire, the other behind it: only a per-sample depth test gets
+    both right); the image shows the jaw there and the needle beside it."""
+    T_N = transform_from_euler([0.0, 0.0, 0.085], [180.0 if facing else 0.0, 0.0, 0.0])
+    g = Gripper("grip", _grasp(T_N, 1.2), jaw_width=0.0025, jaw_thickness=0.0012,
+                opening=CT1.wire_diameter, shaft_length=0.03, level=110.0)
+    nd = NeedleObject("n", CT1, T_N)
+    frame = SceneRenderer(_scene(needles=(nd,), grippers=(g,))).render()
+    truth = frame.needle_truth["endoscope"]["n"]
+    # where each arc point lies across the jaws (tool x; the jaw spans |x| <= width / 2)
+    x_tool = transform_points(np.linalg.inv(g.T_ref_tool) @ T_N,
+                              CT1.points(len(truth.phi)))[:, 0]
+    under = np.abs(x_tool) < 0.5 * g.jaw_width - 0.0002
+    clear = np.abs(x_tool) > 0.5 * g.jaw_width + 0.0004
+    assert under.sum() >= 3
+    assert not truth.visible[under].any()
+    assert truth.visible[clear].all()
+    assert truth.visible_fraction == pytest.approx(1 - (~truth.visible).sum() / 64)
+    img = frame.images["endoscope"].astype(float)
+    at = np.rint(truth.points_px).astype(int)
+    jaw_px = img[at[under, 1], at[under, 0]]
+    assert np.all(np.abs(jaw_px - 110.0) < 15.0)    # the jaw face (rods' shading, ~face-on)
+    wire_px = img[at[clear, 1], at[clear, 0]]
+    assert np.median(wire_px) > 120.0                # the wire, with its highlight
+
+
+# -- the pad -------------------------------------------------------------------------------
+PAD_T = transform_from_euler([0.0, 0.002, 0.095], [180.0 + 35.0, 0.0, 10.0])  # tilted 35 deg
+PAD = TissuePad("pad", PAD_T, size=(0.05, 0.04), level=170.0,
+                incision=((-0.02, -0.012), (0.02, -0.008)), incision_width=0.0008,
+                incision_level=35.0)
+
+
+def test_incision_is_drawn_where_it_should_be():
+    """Issue 7 part 1 (pad): the pad is drawn at its level over its rectangle, with a dark
+    straight incision line exactly on the projection of its ends (the line's darkness is
+    centred on the projected line to a small fraction of a pixel, about as wide as the
+    projected incision width, and ends at its ends)."""
+    frame = SceneRenderer(_scene(pads=(PAD,))).render()
+    img = frame.images["endoscope"].astype(np.float32)
+    (ax, ay), (bx, by) = PAD.incision
+    t = np.linspace(0.1, 0.9, 17)
+    line = np.stack([ax + t * (bx - ax), ay + t * (by - ay), 0 * t], axis=1)
+    uv = CAM.project_from(PAD_T, line)
+    d = uv[-1] - uv[0]
+    d /= np.linalg.norm(d)
+    across = np.array([-d[1], d[0]])
+    offsets = []
+    for p in uv:
+        ts, prof = _profile(img, p, across, half=6.0)
+        dark = PAD.level - prof
+        offsets.append(abs((dark * ts).sum() / dark.sum()))
+        assert abs(prof[0] - PAD.level) < 1.0 and abs(prof[-1] - PAD.level) < 1.0
+        assert prof.min() < PAD.incision_level + 20.0
+    # hard-edged 4 px stroke, 2 x 2 samples a pixel, no blur: edges quantised to 1/4 px
+    assert np.mean(offsets) < 0.1 and max(offsets) < 0.25, offsets
+    # the projected incision width is about 0.8 mm * F / depth ~ 4 px: dark ~ that wide
+    ts, prof = _profile(img, uv[8], across, half=6.0)
+    z = transform_points(PAD_T, line[8:9])[0, 2]
+    width = (PAD.level - prof).sum() * (ts[1] - ts[0]) / (PAD.level - PAD.incision_level)
+    assert width == pytest.approx(PAD.incision_width * F / z, rel=0.35)  # foreshortened
+    # past its ends the pad is plain
+    ends = CAM.project_from(PAD_T, np.array([[ax, ay, 0.0], [bx, by, 0.0]]))
+    for e, out in ((ends[0], -d), (ends[1], d)):
+        q = np.rint(e + 4.0 * out).astype(int)
+        assert abs(img[q[1], q[0]] - PAD.level) < 1.0
+        q = np.rint(e - 3.0 * out).astype(int)
+        assert img[q[1], q[0]] < PAD.level - 60.0
+
+
+def test_needle_lying_on_a_tilted_pad_is_drawn_over_it():
+    """Issue 7 part 1 (depth compositing): a needle lying on the far half of a steeply
+    tilted pad, deeper than the pad's mean depth, is drawn over the pad and fully visible;
+    a needle half driven into the pad shows only its part above the surface, and the truth
+    flags the part under the surface as hidden."""
+    # on the far half (pad y < 0 for this tilt), the arc's body toward -y
+    T_on = PAD_T @ transform_from_euler([0.0, -0.004, 0.0005], [0.0, 0.0, 180.0])
+    assert transform_points(T_on, CT1.points(64))[:, 2].mean() > PAD_T[2, 3] + 0.003
+    bare = SceneRenderer(_scene(pads=(PAD,))).render().images["endoscope"].astype(float)
+    frame = SceneRenderer(_scene(pads=(PAD,), needles=(NeedleObject("n", CT1, T_on),))
+                          ).render()
+    truth = frame.needle_truth["endoscope"]["n"]
+    assert truth.visible.all()
+    at = np.rint(truth.points_px).astype(int)
+    diff = np.abs(frame.images["endoscope"].astype(float) - bare)[at[:, 1], at[:, 0]]
+    assert np.mean(diff > 20.0) > 0.9
+    # half driven: the needle upright in the pad's x-z plane, its body down into the
+    # tissue (needle y = -pad z), its centre 5 mm above the surface: the arc dips 8 mm
+    # below it, base and tip stand out
+    T_driven = PAD_T @ make_transform(np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0],
+                                                [0.0, -1.0, 0.0]]), [0.0, 0.004, 0.005])
+    frame = SceneRenderer(_scene(pads=(PAD,), needles=(NeedleObject("n", CT1, T_driven),))
+                          ).render()
+    truth = frame.needle_truth["endoscope"]["n"]
+    height = transform_points(np.linalg.inv(PAD_T) @ T_driven, CT1.points(64))[:, 2]
+    assert (height < -0.001).sum() >= 5 and (height > 0.001).sum() >= 5
+    assert not truth.visible[height < -0.0005].any()
+    assert truth.visible[height > 0.0005].all()
+    img = frame.images["endoscope"].astype(float)
+    at = np.rint(truth.points_px[height < -0.002]).astype(int)
+    assert np.all(np.abs(img[at[:, 1], at[:, 0]] - bare[at[:, 1], at[:, 0]]) < 1.0)
+
+
+# -- determinism, speed, bad input ---------------------------------------------------------
+NOISY = Imaging(supersample=2, background=30.0, blur_sigma_px=1.0, read_noise_dn=1.5,
+                shot_noise_gain=0.06, illumination_gradient=(0.3, 0.2))
+
+
+def _full_scene(imaging: Imaging = NOISY, seed: int = 4) -> Scene:
+    T_N = PAD_T @ transform_from_euler([0.003, 0.0, 0.0005], [0.0, 0.0, 30.0])
+    grip = Gripper("grip", PAD_T @ transform_from_euler([-0.012, 0.004, 0.01],
+                                                         [200.0, -20.0, 0.0]), opening=0.003)
+    return Scene(rig=RIG, placements=(), imaging=imaging, seed=seed,
+                 needles=(NeedleObject("n", CT1, T_N),), pads=(PAD,), grippers=(grip,))
+
+
+def test_same_seed_same_bytes():
+    """Issue 7 part 1 (renderer guarantees): a needle + pad + gripper scene with blur,
+    noise and an illumination gradient renders to the same bytes and truth for the same
+    seed and frame; the noise changes with the frame."""
+    a = SceneRenderer(_full_scene()).render(frame=2)
+    b = SceneRenderer(_full_scene()).render(frame=2)
+    assert a.images["endoscope"].tobytes() == b.images["endoscope"].tobytes()
+    assert a.truth_json("endoscope") == b.truth_json("endoscope")
+    c = SceneRenderer(_full_scene()).render(frame=3)
+    assert c.images["endoscope"].tobytes() != a.images["endoscope"].tobytes()
+
+
+def test_render_time_guard():
+    """Issue 7 part 1 (speed): a 640 x 480 endoscope frame with a needle, a pad and a
+    gripper (supersample 2, blur, noise) renders well within 100 ms median (about 10 ms
+    on the 2-core development machine; loose for loaded CI machines)."""
+    renderer = SceneRenderer(_full_scene())
+    renderer.prepare()
+    renderer.render()
+    times = []
+    for k in range(7):
+        t0 = time.perf_counter()
+        renderer.render(frame=k)
+        times.append(time.perf_counter() - t0)
+    assert np.median(times) < 0.1, times
+
+
+def test_bad_objects_are_refused():
+    """Issue 7 part 1 (bad input): objects sharing a name, a pad of no size, a gripper
+    with a negative opening, and poses for unknown objects are refused with a clear
+    RenderError."""
+    nd = NeedleObject("n", CT1, np.eye(4))
+    with pytest.raises(RenderError, match="repeated: \\['n'\\]"):
+        SceneRenderer(_scene(needles=(nd,), pads=(replace(PAD, name="n"),)))
+    with pytest.raises(RenderError, match="size_x"):
+        SceneRenderer(_scene(pads=(replace(PAD, size=(0.0, 0.04)),)))
+    with pytest.raises(RenderError, match="opening"):
+        SceneRenderer(_scene(grippers=(Gripper("g", np.eye(4), opening=-0.001),)))
+    with pytest.raises(RenderError, match="unknown placements or objects"):
+        SceneRenderer(_scene(needles=(nd,))).render(poses={"m": np.eye(4)})
+
+
+def test_example_renders_needle_pad_and_gripper(example):
+    """Issue 7 part 1 (example scene): needle_pad.toml renders the endoscope's view with
+    the pad (its level around the needle), the needle and the gripper, its needle fully
+    visible in ground truth."""
+    scene, renderer = example
+    frame = renderer.render()
+    img = frame.images["endoscope"]
+    assert img.dtype == np.uint8 and img.shape == (1080, 1920)
+    truth = frame.needle_truth["endoscope"]["ct1"]
+    assert truth.visible_fraction == 1.0
+    c = np.rint(truth.points_px.mean(axis=0)).astype(int)   # inside the arc: bare pad
+    assert 120 < img[c[1], c[0]] < 230
+    g = scene.grippers[0]
+    tip = scene.rig["endoscope"].project_from(
+        scene.rig["endoscope"].T_cam_ref @ g.T_ref_tool,
+        np.array([[0.0, 0.5 * g.opening + 0.5 * g.jaw_thickness, -0.002]]))[0]
+    q = np.rint(tip).astype(int)
+    assert abs(int(img[q[1], q[0]]) - 110) < 40       # a jaw (the gripper's level)
