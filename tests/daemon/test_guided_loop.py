@@ -116,16 +116,24 @@ def test_hand_feeds_the_instrument_to_the_target_along_the_axis(planned):
 
 
 def test_patient_motion_into_the_rod_trips_the_alarm(planned):
-    """Safety: when the model frame jumps so that the rod would cut the tissue (the head
-    sideways into the cheek), the loop latches the stop with the rod alarm and sends no
-    motion after it."""
+    """Safety: when the model frame jumps so that the rod cuts the tissue (the patient
+    moves 20 mm sideways; python-fcl on the mesh confirms the cut), the loop latches the
+    stop with the rod alarm and sends no motion after it."""
+    from oralnav.bench.planning import _MeshOracle
+
     scene, p = planned
     cell = GuidedCell(scene, p, push_duration=3.0)
     try:
         cell.run(500)                                     # 1 s: head inside the mouth
         assert not cell.status.read()["latched"]
         moved = cell.T_B_F.copy()
-        moved[:3, 3] += moved[:3, :3] @ np.array([-0.02, 0.0, 0.0])  # head 20 mm into the cheek
+        moved[:3, 3] += moved[:3, :3] @ np.array([0.02, 0.0, 0.0])
+        # the premise, on the exact mesh: the rod at the measured TCP now cuts the tissue
+        T = np.linalg.inv(moved) @ cell.arm.state().T_B_tcp
+        r, x = cell.plan.rod_radius, T[:3, 0]
+        start = T[:3, 3] + r * x
+        end = start + (scene.model.certificate.z_hi - start[2]) / x[2] * x
+        assert _MeshOracle(scene.mesh).clearance(start, end) < r
         t = cell.clock.now()
         cell.run(3, T_B_F=moved)
         st = cell.status.read()
