@@ -320,6 +320,18 @@ def _pose_at(T: np.ndarray, v: np.ndarray, w: np.ndarray, tau: float) -> np.ndar
     return out
 
 
+def _ring(u: np.ndarray, radius: float) -> np.ndarray:
+    """16 points (16, 3) on the circle of ``radius`` about the unit axis ``u`` through the
+    origin: a cylinder's cross-section, for its bounding box."""
+    e1 = np.cross(u, [1.0, 0.0, 0.0])
+    if np.linalg.norm(e1) < 0.1:
+        e1 = np.cross(u, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    ang = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+    return radius * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2)
+
+
 class SceneRenderer:
     """Renders a :class:`~oralnav.sim.scene.Scene` into images with ground truth.
 
@@ -714,13 +726,7 @@ class SceneRenderer:
         axis = p1 - p0
         length = float(np.linalg.norm(axis))
         u = axis / length
-        e1 = np.cross(u, [1.0, 0.0, 0.0])
-        if np.linalg.norm(e1) < 0.1:
-            e1 = np.cross(u, [0.0, 1.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(u, e1)
-        ang = np.linspace(0, 2 * np.pi, 16, endpoint=False)
-        ring = rod.radius * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2)
+        ring = _ring(u, rod.radius)
         along = np.linspace(f0, f1, 5)[:, None, None] * axis
         box = self._bbox(st.cam, (p0 + along + ring[None]).reshape(-1, 3), pad=2)
         if box is None:
@@ -1041,13 +1047,7 @@ class SceneRenderer:
         if ends is None:
             return out
         n = max(1, min(64, max(ends[2] - ends[0], ends[3] - ends[1]) // 48))
-        e1 = np.cross(u, [1.0, 0.0, 0.0])
-        if np.linalg.norm(e1) < 0.1:
-            e1 = np.cross(u, [0.0, 1.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(u, e1)
-        ang = np.linspace(0, 2 * np.pi, 16, endpoint=False)
-        ring = g.shaft_radius * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2)
+        ring = _ring(u, g.shaft_radius)
         f = np.linspace(0.0, 1.0, n + 1)
         along = f[:-1, None] + (f[1:] - f[:-1])[:, None] * np.linspace(0, 1, 5)[None]
         pts = (p0 + along[..., None, None] * axis + ring).reshape(n, -1, 3)
