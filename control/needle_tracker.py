@@ -43,9 +43,11 @@ from dataclasses import dataclass
 import cv2
 import numba
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .camera import CameraModel
 from .errors import NeedleError
+from .geometry import nearest_rigid
 from .needle import Needle
 
 
@@ -218,45 +220,6 @@ def _scores(R: np.ndarray, t: np.ndarray, pts: np.ndarray, T_cam_ref: np.ndarray
     return out
 
 
-@numba.njit(cache=True, nogil=True)
-def _perturb(R: np.ndarray, t: np.ndarray, dR: np.ndarray, dt: np.ndarray) -> None:
-    """In place: ``R <- exp(dR) R``, ``t <- t + dt`` (rotation vectors ``dR`` (P, 3), in
-    the reference frame, about each particle's own origin)."""
-    for p in range(R.shape[0]):
-        wx, wy, wz = dR[p, 0], dR[p, 1], dR[p, 2]
-        th = math.sqrt(wx * wx + wy * wy + wz * wz)
-        if th > 0.0:
-            kx, ky, kz = wx / th, wy / th, wz / th
-            c, s = math.cos(th), math.sin(th)
-            v = 1.0 - c
-            E = np.array([[c + kx * kx * v, kx * ky * v - kz * s, kx * kz * v + ky * s],
-                          [ky * kx * v + kz * s, c + ky * ky * v, ky * kz * v - kx * s],
-                          [kz * kx * v - ky * s, kz * ky * v + kx * s, c + kz * kz * v]])
-            R[p] = E @ R[p]
-        t[p, 0] += dt[p, 0]
-        t[p, 1] += dt[p, 1]
-        t[p, 2] += dt[p, 2]
-
-
-def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
-    """``n`` rotations uniform on SO(3) (unit quaternions from normals)."""
-    q = rng.normal(size=(n, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-    ], axis=1)
-
-
-def _project_rotation(M: np.ndarray) -> np.ndarray:
-    """Nearest rotation to a 3x3 matrix (the chordal mean's last step)."""
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
-
-
 # -- the filter ---------------------------------------------------------------------------
 
 class NeedleFilter:
@@ -358,7 +321,7 @@ class NeedleFilter:
         ray = cam.backproject(uv)                         # unit-z rays in the camera frame
         depth = self.rng.uniform(lo, hi, P)
         p_cam = ray * depth[:, None]
-        R_cam = _random_rotations(self.rng, P)
+        R_cam = Rotation.random(P, random_state=self.rng).as_matrix()
         phi = self.rng.uniform(0.0, self.needle.arc, P)
         on_arc = self.needle.point(phi)                    # the point put on the pixel
         t_cam = p_cam - np.einsum("pij,pj->pi", R_cam, on_arc)
@@ -400,9 +363,8 @@ class NeedleFilter:
         # rotation about the centre would swing the whole wire sideways
         mid = self.needle.point(self.needle.arc / 2)
         c = np.einsum("pij,j->pi", self.R, mid)
-        _perturb(self.R, self.t, dR, dt)
-        c2 = np.einsum("pij,j->pi", self.R, mid)
-        self.t += c - c2
+        self.R = np.ascontiguousarray(Rotation.from_rotvec(dR).as_matrix() @ self.R)
+        self.t += dt + c - np.einsum("pij,j->pi", self.R, mid)
 
     def update(self, maps: Sequence[np.ndarray]) -> NeedleEstimate:
         """Measurement update on the current images, then resampling. Returns the
@@ -446,13 +408,14 @@ class NeedleFilter:
         Rc = np.where(use_f[:, None, None], Rf, self.R)
         # the flip is a half turn about an axis through N's origin (the arc's centre):
         # both twins share the translation
-        Rm = _project_rotation(np.einsum("p,pij->ij", w, Rc))
-        tm = w @ self.t
+        # the chordal mean: the weighted sum of the matrices, projected onto SO(3)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = np.einsum("p,pij->ij", w, Rc), w @ self.t
+        T = nearest_rigid(T)
+        Rm, tm = T[:3, :3], T[:3, 3]
         pos = float(np.sqrt(w @ np.sum((self.t - tm) ** 2, axis=1)))
         cos_a = np.clip((np.einsum("ij,pij->p", Rm, Rc) - 1.0) / 2.0, -1.0, 1.0)
         ang = float(np.sqrt(w @ np.arccos(cos_a) ** 2))
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = Rm, tm
         T_alt = T.copy()
         T_alt[:3, :3] = Rm @ self.flip
         raw = self._raw(stacked, T[None, :3, :3].copy(), T[None, :3, 3].copy())

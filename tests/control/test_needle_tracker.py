@@ -116,22 +116,24 @@ def test_low_variance_resampling_keeps_weighted_shares():
     assert ids.tolist() == [3, 7, 11] and counts.tolist() == [100, 60, 40]
 
 
-def test_filter_localises_a_clean_needle():
-    """Global initialisation and a few updates find the needle on a clean image to
-    within a few millimetres (modulo the base/tip twin). A single view leaves depth and
-    tilt weakly constrained: the bound here is loose on purpose; accuracy is measured by
-    the bench, not claimed by this test."""
+@pytest.mark.parametrize("seed", range(4))
+def test_filter_finds_the_needle_outline(seed):
+    """Global initialisation and a few updates find the needle on a clean image: the
+    estimate's arc (or its base/tip twin) reprojects within 6 px of the true one, on
+    every seed tried. A single view determines the outline, not the depth: the 3-D
+    error of the arc's middle spreads over 4-13 mm across seeds here, which is why the
+    accuracy target needs stereo or refinement (docs/needle.md); no 3-D bound is
+    asserted."""
     dm = feature_distance(_image(), 2.0)
-    flt = NeedleFilter(NEEDLE, [CAM], FilterSettings(particles=2000, seed=1))
+    flt = NeedleFilter(NEEDLE, [CAM], FilterSettings(particles=2000, seed=seed))
     est = flt.initialize([dm], (0.08, 0.12))
     for _ in range(5):
         flt.predict(scale=0.5)
         est = flt.update([dm])
-    # the arc's middle, which both twins share
-    mid = NEEDLE.point(NEEDLE.arc / 2)
-    p_est = est.pose[:3, :3] @ mid + est.pose[:3, 3]
-    p_true = T_TRUE[:3, :3] @ mid + T_TRUE[:3, 3]
-    assert np.linalg.norm(p_est - p_true) < 0.006
+    pts = NEEDLE.points(9)
+    true = CAM.project_from(T_TRUE, pts)
+    off = min(np.abs(CAM.project_from(T, pts) - true).max() for T in (est.pose, est.pose_alt))
+    assert off < 6.0
     assert est.score > 0.8
 
 
