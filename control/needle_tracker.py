@@ -38,9 +38,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
-import cv2
 import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -49,6 +48,8 @@ from .camera import CameraModel
 from .errors import NeedleError
 from .geometry import nearest_rigid
 from .needle import Needle
+from .needle_features import NeedleFeatures
+from .needle_refine import PoseRefiner, Refined, RefineSettings, swage_evidence
 
 
 @dataclass(frozen=True)
@@ -104,45 +105,10 @@ class NeedleEstimate:
     match: float
     ess: float
     converged: bool
+    best: np.ndarray | None = None    # the heaviest particle's pose (the swarm's mode)
 
 
 # -- thin features ------------------------------------------------------------------------
-
-def feature_distance(image: np.ndarray, wire_px: float, contrast: float = 12.0,
-                     ignore: np.ndarray | None = None) -> np.ndarray:
-    """Distance (px, float32, same shape as ``image``) from every pixel to the nearest
-    thin-feature pixel of a mono8 ``image``.
-
-    Thin features are lines narrower than about ``wire_px`` pixels that differ from their
-    surroundings by ``contrast`` DN or more (or three times the image's median response,
-    when noise is stronger), dark or bright: the morphological black-hat
-    (closing minus image: dark lines) and top-hat (image minus opening: bright lines,
-    such as a needle's highlights) with a square window of about twice the wire width;
-    wider structures, such as the pad's edges, pass both unchanged. ``ignore`` (bool mask)
-    removes known features, such as a drawn incision, from the map.
-    """
-    img = np.asarray(image)
-    if img.dtype != np.uint8 or img.ndim != 2:
-        raise NeedleError(f"needle features need a mono8 image, got {img.dtype} "
-                          f"with shape {img.shape}")
-    if not wire_px > 0:
-        raise NeedleError(f"wire width must be > 0 px, got {wire_px}")
-    k = max(3, 2 * int(math.ceil(wire_px)) + 1)
-    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
-    # a light blur first: the hats of raw sensor noise span its whole range over a window
-    smooth = cv2.GaussianBlur(img, (3, 3), 0)
-    dark = cv2.morphologyEx(smooth, cv2.MORPH_BLACKHAT, kernel)
-    bright = cv2.morphologyEx(smooth, cv2.MORPH_TOPHAT, kernel)
-    response = cv2.max(dark, bright)
-    # the threshold rises above the noise: most pixels are background, so the median
-    # response is the noise's typical hat height
-    level = max(contrast, 3.0 * float(np.median(response[::4, ::4])))
-    feature = response >= level
-    if ignore is not None:
-        feature &= ~np.asarray(ignore, dtype=bool)
-    src = np.where(feature, 0, 255).astype(np.uint8)
-    return cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_3)
-
 
 # -- compiled kernels --------------------------------------------------------------------
 
@@ -423,5 +389,181 @@ class NeedleFilter:
         match = float(np.mean(self._match(raw, norm)))
         conv = (pos <= s.converged_position and ang <= s.converged_angle
                 and score >= s.converged_score and match >= s.converged_score)
+        k = int(np.argmax(w))
+        best = np.eye(4)
+        best[:3, :3], best[:3, 3] = self.R[k], self.t[k]
         return NeedleEstimate(T, T_alt, pos, ang, score, match, float(1.0 / np.sum(w * w)),
-                              conv)
+                              conv, best)
+
+
+# -- the tracker: filter, then refinement -------------------------------------------------
+
+@dataclass(frozen=True)
+class TrackSettings:
+    """What the tracker asks of a pose before a step may move on it: the refined fit
+    within :class:`.needle_refine.RefineSettings` bounds, its one-sigma uncertainty
+    under ``max_sigma_position`` (m) and ``max_sigma_angle`` (rad), and the filter's
+    estimate on the wire (``min_score``). ``inject``: the share of particles reset to the
+    refined pose each update (with the motion noise), which keeps the swarm on the
+    precise answer; ``swage_min``: the ridge difference (DN) that decides base from tip.
+    """
+
+    max_sigma_position: float = 0.0003
+    max_sigma_angle: float = math.radians(1.5)
+    min_score: float = 0.5
+    inject: float = 0.2
+    swage_min: float = 4.0
+
+
+@dataclass(frozen=True)
+class NeedleTrack:
+    """One tracking update's answer.
+
+    ``pose``: ``T_ref_N``, the refined pose when the refinement succeeded, else the
+    filter's estimate; ``filter``: the filter's estimate; ``refined``: the refinement
+    (``None`` when it was not run); ``swage``: the base/tip evidence
+    (:func:`.needle_refine.swage_evidence` at ``pose``, positive: base as reported);
+    ``converged``: only then may a step move on ``pose``; ``reason``: why not, when not.
+    """
+
+    pose: np.ndarray
+    filter: NeedleEstimate
+    refined: Refined | None
+    swage: float
+    converged: bool
+    reason: str
+
+
+class NeedleTracker:
+    """The needle tracker of seed 002 §III.B with a sub-pixel finish: the particle filter
+    (:class:`NeedleFilter`) finds and follows the needle robustly; each update, its
+    estimate is refined on the wire's centreline in every view (:class:`PoseRefiner`);
+    the suture thread at the swage tells base from tip.
+
+    Images go in as :class:`NeedleFeatures` (:func:`feature_maps`), one per camera.
+    """
+
+    def __init__(self, needle: Needle, cameras: Sequence[CameraModel],
+                 filter_settings: FilterSettings | None = None,
+                 refine_settings: RefineSettings | None = None,
+                 settings: TrackSettings | None = None) -> None:
+        self.filter = NeedleFilter(needle, cameras, filter_settings)
+        self.refiner = PoseRefiner(needle, cameras, refine_settings)
+        self.s = settings or TrackSettings()
+        self.needle, self.cameras = needle, tuple(cameras)
+        self.last: NeedleTrack | None = None
+        self._moved: np.ndarray | None = None
+
+    def initialize(self, features: Sequence[NeedleFeatures],
+                   depth_range: tuple[float, float]) -> NeedleTrack:
+        """Global localisation (:meth:`NeedleFilter.initialize`), then the finish, which
+        here also tries the swarm's mode and the circle's mirror tilt of each start
+        (:func:`mirror_tilt`): a swarm that found both tilts of the outline averages to
+        neither, and a short stereo baseline barely separates them."""
+        self.last = None
+        self._moved = None
+        est = self.filter.initialize([f.distance for f in features], depth_range)
+        starts = [est.pose] + ([est.best] if est.best is not None else [])
+        ref = self.cameras[0].T_ref_cam[:3, 3]
+        starts += [mirror_tilt(T, ref) for T in starts]
+        return self._finish(features, est, starts)
+
+    def predict(self, delta: np.ndarray | None = None) -> None:
+        """Motion update: :meth:`NeedleFilter.predict`; the last refined pose moves with
+        the gripper too (it is the refinement's first start next update)."""
+        self.filter.predict(delta)
+        if self.last is not None and self.last.refined is not None and self.last.refined.ok:
+            T = self.last.pose
+            self._moved = T if delta is None else np.asarray(delta, dtype=float) @ T
+
+    def update(self, features: Sequence[NeedleFeatures]) -> NeedleTrack:
+        """Measurement update on the current images, then the finish, started from the
+        last refined pose (moved) and from the filter's estimate."""
+        est = self.filter.update([f.distance for f in features])
+        starts = ([self._moved] if self._moved is not None else []) + [est.pose]
+        return self._finish(features, est, starts)
+
+    def _finish(self, features: Sequence[NeedleFeatures], est: NeedleEstimate,
+                starts: list[np.ndarray]) -> NeedleTrack:
+        s = self.s
+        ridges = [f.ridge for f in features]
+        ref: Refined | None = None
+        for T0 in starts:
+            r = self.refiner.refine(features, T0)
+            # a fit that passes beats one that does not; then the closer fit
+            if ref is None or (r.ok, -r.rms_px) > (ref.ok, -ref.rms_px):
+                ref = r
+            if r.ok and r.rms_px <= 0.5 * self.refiner.s.max_rms_px and len(starts) <= 2:
+                break       # tracking: the first start is already good
+        assert ref is not None
+        pose = ref.pose if ref.ok else est.pose
+        swage = swage_evidence(self.needle, self.cameras, ridges, pose)
+        if swage < -s.swage_min:
+            # the thread is at the other end: the twin is the needle; fit it again, since
+            # the ends were read the other way round
+            twin = pose.copy()
+            twin[:3, :3] = pose[:3, :3] @ self.filter.flip
+            if ref.ok:
+                again = self.refiner.refine(features, twin)
+                if again.ok:
+                    ref, twin = again, again.pose
+            pose = twin
+            swage = swage_evidence(self.needle, self.cameras, ridges, pose)
+        if ref.ok:
+            self._inject(pose)
+        reason = ""
+        if est.score < s.min_score:
+            reason = f"the filter's estimate is not on the wire (score {est.score:.2f})"
+        elif not ref.ok:
+            reason = (f"the refined fit is poor (RMS {ref.rms_px:.2f} px, "
+                      f"{100 * ref.support:.0f} % of the arc found)")
+        elif ref.sigma_position > s.max_sigma_position or ref.sigma_angle > s.max_sigma_angle:
+            reason = (f"the views leave the pose uncertain ({1e3 * ref.sigma_position:.2f} mm, "
+                      f"{math.degrees(ref.sigma_angle):.1f} deg)")
+        track = NeedleTrack(pose, est, ref, swage, not reason, reason)
+        self.last = track
+        self._moved = None
+        return track
+
+    def _inject(self, pose: np.ndarray) -> None:
+        """Reset a share of the particles to ``pose``, keeping the filter's twin
+        reference on it (the next estimate is reported nearest the refined pose)."""
+        f = self.filter
+        P = f.R.shape[0]
+        k = int(round(self.s.inject * P))
+        if k == 0:
+            return
+        idx = f.rng.choice(P, k, replace=False)
+        f.R[idx] = pose[:3, :3]
+        f.t[idx] = pose[:3, 3]
+        if f.last is not None:
+            f.last = replace(f.last, pose=pose, pose_alt=pose @ _flip4(f.flip))
+
+
+def _flip4(flip: np.ndarray) -> np.ndarray:
+    F = np.eye(4)
+    F[:3, :3] = flip
+    return F
+
+
+def mirror_tilt(T: np.ndarray, eye: np.ndarray) -> np.ndarray:
+    """The other tilt of a circle's outline: the needle turned about its centre so its
+    plane's normal is mirrored about the line of sight from ``eye`` (a camera centre,
+    reference frame) to the centre. One view sees a circle's outline the same either way
+    (the two-fold ambiguity of a circle's pose); the turn, by twice the angle between the
+    normal and the line of sight about their common perpendicular, maps one onto the
+    other and keeps the arc's points near their rays."""
+    T = np.asarray(T, dtype=float)
+    v = T[:3, 3] - np.asarray(eye, dtype=float)
+    v /= np.linalg.norm(v)
+    n = T[:3, 2]
+    axis = np.cross(n, v)
+    sn = float(np.linalg.norm(axis))
+    if sn < 1e-9:
+        return T.copy()       # face-on: both tilts are the same
+    ang = math.atan2(sn, float(n @ v))
+    # turning the normal toward the line of sight by twice their angle mirrors it
+    turn = Rotation.from_rotvec(axis / sn * (2.0 * ang)).as_matrix()
+    out = T.copy()
+    out[:3, :3] = turn @ T[:3, :3]
+    return out

@@ -11,7 +11,8 @@ from oralnav.control.camera import CameraModel
 from oralnav.control.errors import NeedleError
 from oralnav.control.geometry import transform_from_euler
 from oralnav.control.needle import Needle
-from oralnav.control.needle_tracker import FilterSettings, NeedleFilter, feature_distance
+from oralnav.control.needle_features import feature_distance
+from oralnav.control.needle_tracker import FilterSettings, NeedleFilter
 
 CAM = CameraModel("endoscope", (320, 240), np.array([[300.0, 0, 160], [0, 300.0, 120],
                                                      [0, 0, 1]]))

@@ -1,0 +1,390 @@
+"""Sub-pixel refinement of a needle pose against the wire's centreline in every view.
+
+The particle filter (:mod:`.needle_tracker`) is robust but coarse: its measurement reads a
+binary feature map, so its precision is a fraction of the wire's width in pixels, and its
+particles are spread by the motion noise. This module takes the filter's pose and polishes
+it the way model-based edge trackers do ("moving edges"): the needle's arc is projected
+into each camera; at every projected sample point the wire's *ridge* (a smoothed
+thin-line response, :func:`.needle_features.feature_maps`) is searched along the projected
+arc's normal, and its peak is located to sub-pixel precision by a parabola through the
+three samples around it; Gauss-Newton on the six pose parameters then minimises the
+distances, along those normals, between the projected points and the peaks, with Tukey
+weights so that points on other features (the jaws, the thread, the incision) or hidden
+ones do not pull. A few rounds with a shrinking search window bring the pose to the
+centreline.
+
+The result carries what a step needs to trust it: the RMS residual (px), the share of
+sample points that found the wire, and the pose covariance from the normal equations
+(the uncertainty the views leave, e.g. a single view's depth).
+
+The needle's base/tip twin (:mod:`.needle_tracker`, *Symmetry*) is broken by the suture
+thread at the swage: :func:`swage_evidence` compares the ridge just beyond each end.
+
+Pure math on arrays; metres, radians, pixels. Poses are ``T_ref_N``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .camera import CameraModel
+from .errors import NeedleError
+from .needle import Needle
+from .needle_features import NeedleFeatures
+
+
+@dataclass(frozen=True)
+class RefineSettings:
+    """Refinement settings. Pixels px.
+
+    ``search_px``: the half-width of the normal search of each round (shrinking rounds
+    first capture the wire, then lock onto it); ``iterations``: Gauss-Newton steps per
+    round; ``points``: arc sample points; ``min_peak``: the ridge value (DN) a peak must
+    reach to count; ``tukey_px``: Tukey's constant, residuals beyond it get no weight.
+    """
+
+    points: int = 72
+    search_px: tuple[float, ...] = (10.0, 6.0, 3.0, 3.0)
+    step_px: float = 0.5
+    iterations: int = 2
+    min_peak: float = 6.0
+    tukey_px: float = 2.5
+    max_rms_px: float = 0.8      # above this the refined pose is not trusted
+    min_support: float = 0.6     # share of (visible) sample points that must find the wire
+    end_weight: float = 6.0      # an end measurement counts as this many crest points
+    margin_px: float = 10.0      # profile beyond the search window, for the crest's flanks
+    max_width_ratio: float = 1.3  # crests wider than this times the median are not used
+
+    def __post_init__(self) -> None:
+        if self.points < 8 or not self.search_px or min(self.search_px) <= self.step_px:
+            raise NeedleError("refinement needs >= 8 points and search windows wider "
+                              "than the step")
+        if not (self.step_px > 0 and self.iterations >= 1 and self.tukey_px > 0):
+            raise NeedleError("step_px > 0, iterations >= 1 and tukey_px > 0 are required")
+
+
+@dataclass(frozen=True)
+class Refined:
+    """A refined pose ``T_ref_N`` with its quality.
+
+    ``rms_px``: RMS of the weighted residuals over the points that found the wire;
+    ``support``: the share of the sample points inside the images that found it;
+    ``sigma_position`` (m) and ``sigma_angle`` (rad): one standard deviation of the
+    needle centre's position and of its orientation from the pose covariance (largest
+    axis); ``ok``: ``rms_px`` and ``support`` within the settings' bounds.
+    """
+
+    pose: np.ndarray
+    rms_px: float
+    support: float
+    sigma_position: float
+    sigma_angle: float
+    ok: bool
+
+
+def _perturb(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """``T @ exp(xi)`` with ``xi = (rotation vector, translation)`` in frame N: the
+    parameters are local to the needle, so the rotation turns it about its own centre."""
+    D = np.eye(4)
+    D[:3, :3] = Rotation.from_rotvec(xi[:3]).as_matrix()
+    D[:3, 3] = xi[3:]
+    return T @ D
+
+
+class PoseRefiner:
+    """Refines needle poses seen by ``cameras`` (sharing the reference frame)."""
+
+    def __init__(self, needle: Needle, cameras: Sequence[CameraModel],
+                 settings: RefineSettings | None = None) -> None:
+        if not cameras:
+            raise NeedleError("refinement needs at least one camera")
+        self.needle, self.cameras = needle, tuple(cameras)
+        self.s = settings or RefineSettings()
+        self.points = needle.points(self.s.points)
+        # tangents in N, for the projected normal
+        phi = np.linspace(0.0, needle.arc, self.s.points)
+        self.tangents = np.asarray(needle.tangent(phi))
+        self.T_cam_ref = [c.T_cam_ref for c in self.cameras]
+
+    def _project(self, T: np.ndarray, pts: np.ndarray) -> list[np.ndarray]:
+        return [cam.project_from(Tc @ T, pts) for cam, Tc in zip(self.cameras, self.T_cam_ref,
+                                                                  strict=True)]
+
+    def _normals(self, T: np.ndarray) -> list[np.ndarray]:
+        """Unit image normals of the projected arc at the sample points, per camera."""
+        eps = 2e-4      # m along the tangent: a few pixels
+        a = self._project(T, self.points - eps * self.tangents)
+        b = self._project(T, self.points + eps * self.tangents)
+        out = []
+        for pa, pb in zip(a, b, strict=True):
+            d = pb - pa
+            n = np.stack([-d[:, 1], d[:, 0]], axis=1)
+            ln = np.linalg.norm(n, axis=1, keepdims=True)
+            out.append(n / np.where(ln > 0, ln, np.nan))
+        return out
+
+    def _peaks(self, ridge: np.ndarray, uv: np.ndarray, n: np.ndarray, half: float
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Sub-pixel offset (px, along ``n``) of the ridge's crest near each point, and
+        whether one was found (NaN offset otherwise).
+
+        The crest is the highest sample within ``half`` px (nearer ones preferred); its
+        position is the midpoint of the two half-height crossings around it, each
+        interpolated linearly: a wide wire's profile is flat on top, where a parabola
+        through the top three samples would wander, while the flanks are steep and, for
+        a symmetric profile, centred on the axis."""
+        s = self.s
+        offs = np.arange(-half - s.margin_px, half + s.margin_px + 1e-9, s.step_px)
+        M = offs.size
+        xy = uv[:, None, :] + offs[None, :, None] * n[:, None, :]
+        prof = cv2.remap(ridge, xy[..., 0].astype(np.float32), xy[..., 1].astype(np.float32),
+                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        prof = np.nan_to_num(prof.astype(float))
+        # prefer the crest nearest the prediction when two features are in the window
+        # (the wire and the thread, the jaws or the incision)
+        prior = np.where(np.abs(offs) <= half, np.exp(-0.5 * (offs / half) ** 2), 0.0)
+        k = np.argmax(prof * prior, axis=1)
+        rows = np.arange(len(k))
+        h = 0.5 * prof[rows, k]
+        idx = np.arange(M)
+        below = prof < h[:, None]
+        lc = np.where(below & (idx < k[:, None]), idx, -1).max(axis=1)
+        rc = np.where(below & (idx > k[:, None]), idx, M).min(axis=1)
+        found = ((lc >= 0) & (rc < M) & (2.0 * h >= s.min_peak)
+                 & np.all(np.isfinite(uv), axis=1))
+        lc0, rc0 = np.clip(lc, 0, M - 2), np.clip(rc, 1, M - 1)
+        a0, a1 = prof[rows, lc0], prof[rows, lc0 + 1]
+        b0, b1 = prof[rows, rc0 - 1], prof[rows, rc0]
+        xl = offs[lc0] + s.step_px * (h - a0) / np.maximum(a1 - a0, 1e-9)
+        xr = offs[rc0 - 1] + s.step_px * (b0 - h) / np.maximum(b0 - b1, 1e-9)
+        # a crest much wider than the wire's elsewhere is the wire merged with something
+        # beside it (a pad edge, the thread, a jaw): its midpoint is pulled aside
+        width = xr - xl
+        if np.count_nonzero(found) >= 8:
+            found &= width <= s.max_width_ratio * float(np.median(width[found])) + 1.0
+        return np.where(found, 0.5 * (xl + xr), np.nan), found
+
+    def _end(self, ridge: np.ndarray, uv: np.ndarray, t: np.ndarray, half: float) -> float:
+        """Offset (px, along the outward image tangent ``t``) of the wire's end from the
+        projected end point ``uv``: where the ridge falls to half its level on the wire;
+        NaN when it does not fall inside the window (the end hidden or continued by the
+        thread) or no wire is there."""
+        s = self.s
+        # the window does not shrink with the crest's: the half-level point sits a couple
+        # of pixels out of a flat end (blur), on both ends alike
+        half = max(half, 6.0)
+        offs = np.arange(-2.0 * half, 2.0 * half + 1e-9, s.step_px)
+        xy = (uv[None, :] + offs[:, None] * t[None, :]).astype(np.float32)
+        prof = cv2.remap(ridge, xy[:, 0:1], xy[:, 1:2], cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)[:, 0].astype(float)
+        on = float(np.median(prof[offs < -half]))
+        if not on >= 2.0 * s.min_peak:
+            return math.nan
+        below = np.nonzero(prof < 0.5 * on)[0]
+        below = below[offs[below] > -half]
+        if below.size == 0:
+            return math.nan
+        k = int(below[0])
+        if k == 0 or np.any(prof[k:] >= 0.5 * on):
+            return math.nan       # it rises again: another feature, not a clean end
+        # linear interpolation between the last sample above half and the first below
+        a, b = prof[k - 1], prof[k]
+        return float(offs[k - 1] + s.step_px * (a - 0.5 * on) / max(a - b, 1e-9))
+
+    def _tangents(self, T: np.ndarray) -> list[np.ndarray]:
+        """Outward unit image tangents at the base and at the tip (2, 2), per camera."""
+        eps = 2e-4
+        ends = np.stack([self.points[0], self.points[-1]])
+        out_dir = np.stack([-self.tangents[0], self.tangents[-1]])
+        a = self._project(T, ends)
+        b = self._project(T, ends + eps * out_dir)
+        out = []
+        for pa, pb in zip(a, b, strict=True):
+            d = pb - pa
+            ln = np.linalg.norm(d, axis=1, keepdims=True)
+            out.append(d / np.where(ln > 0, ln, np.nan))
+        return out
+
+    def _measure(self, ridges: list[np.ndarray], ends: list[np.ndarray], T: np.ndarray,
+                 half: float
+                 ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+                            int, int]:
+        """Per camera, the measurements ``(point index, image direction, target pixel,
+        weight)``: the ridge crest along the normal at every sample point, and the wire's
+        end along the tangent at the base and the tip (weighted as ``end_weight`` points:
+        sliding along itself is the one motion of an arc that its crest cannot see).
+        Also the number of sample points that found the crest and of those in the
+        images."""
+        s = self.s
+        K = self.points.shape[0]
+        uvs = self._project(T, self.points)
+        out, found_n, inside = [], 0, 0
+        for ridge, endmap, uv, n, tg, cam in zip(ridges, ends, uvs, self._normals(T),
+                                                 self._tangents(T), self.cameras,
+                                                 strict=True):
+            d, found = self._peaks(ridge, uv, n, half)
+            found &= np.all(np.isfinite(n), axis=1)
+            idx = [np.nonzero(found)[0]]
+            # rows are 4 wide so the end pair (two directions, two targets) fits
+            z2 = np.zeros((int(np.count_nonzero(found)), 2))
+            dirs = [np.hstack([n[found], z2])]
+            tgt = [np.hstack([uv[found] + d[found, None] * n[found], z2])]
+            wts = [np.ones(int(np.count_nonzero(found)))]
+            # the ends, as a difference: sliding along itself moves one end out and the
+            # other in by the same amount, while whatever biases both ends alike (blur,
+            # shading, how the ends are cut) cancels. Rows with index -1 are this pair.
+            if np.all(np.isfinite(uv[[0, K - 1]])) and np.all(np.isfinite(tg)):
+                ob = self._end(endmap, uv[0], tg[0], half)
+                ot = self._end(endmap, uv[K - 1], tg[1], half)
+                if math.isfinite(ob) and math.isfinite(ot):
+                    idx.append(np.array([-1]))
+                    dirs.append(np.concatenate([tg[0], tg[1]])[None])
+                    tgt.append(np.concatenate([uv[0] + ob * tg[0], uv[K - 1] + ot * tg[1]])[None])
+                    wts.append(np.array([s.end_weight]))
+                else:
+                    # one end only (the thread continues the crest past the swage, or an
+                    # end is hidden): used alone, with the blur's outward bias (1-2 px)
+                    # uncancelled, at half weight
+                    for o, k, j in ((ob, 0, 0), (ot, K - 1, 1)):
+                        if math.isfinite(o):
+                            idx.append(np.array([k]))
+                            dirs.append(np.concatenate([tg[j], [0.0, 0.0]])[None])
+                            tgt.append(np.concatenate([uv[k] + o * tg[j], [0.0, 0.0]])[None])
+                            wts.append(np.array([0.5 * s.end_weight]))
+            out.append((np.concatenate(idx), np.concatenate(dirs), np.concatenate(tgt),
+                        np.concatenate(wts)))
+            found_n += int(np.count_nonzero(found))
+            inside += int(np.count_nonzero(cam.in_image(uv)))
+        return out, found_n, inside
+
+    def refine(self, features: Sequence[NeedleFeatures], T: np.ndarray) -> Refined:
+        """Refine ``T`` (``T_ref_N``) on the cameras' features (:func:`.needle_features.
+        feature_maps`, one per camera, same order): the crest on ``ridge``, the ends on
+        ``ends``."""
+        s = self.s
+        if len(features) != len(self.cameras):
+            raise NeedleError(f"expected {len(self.cameras)} feature sets (one per camera), "
+                              f"got {len(features)}")
+        for f, cam in zip(features, self.cameras, strict=True):
+            for what in ("ridge", "ends"):
+                if getattr(f, what).shape != (cam.height, cam.width):
+                    raise NeedleError(f"camera {cam.name!r}: {what} image is "
+                                      f"{getattr(f, what).shape}, the camera is "
+                                      f"{cam.height} x {cam.width}")
+        ridges = [np.asarray(f.ridge, dtype=np.float32) for f in features]
+        ends = [np.asarray(f.ends, dtype=np.float32) for f in features]
+        T = np.asarray(T, dtype=float).copy()
+        rms, support, H = math.inf, 0.0, None
+        for half in (*s.search_px, s.search_px[-1]):
+            meas, found_n, inside = self._measure(ridges, ends, T, half)
+            support = found_n / max(inside, 1)
+            if found_n < 8:
+                H = None
+                break
+            for _ in range(s.iterations):
+                r, J, w0 = self._linearise(T, meas)
+                # Tukey's constant covers the round's window: a point found 8 px out in a
+                # 10 px search is the wire seen from a pose still 8 px off, not an outlier
+                c = np.where(w0 > 1.0, max(s.tukey_px, 2.0 * max(half, 6.0)),
+                             max(s.tukey_px, half))
+                w = w0 * (1.0 - np.minimum((r / c) ** 2, 1.0)) ** 2
+                if np.count_nonzero(w) < 8:
+                    H = None
+                    break
+                H = (J * w[:, None]).T @ J
+                g = (J * w[:, None]).T @ r
+                rms = float(np.sqrt(np.sum(w * r * r) / max(np.sum(w), 1e-12)))
+                # a touch of damping keeps a weak direction (a single view's depth) from
+                # running away before the next search
+                step = np.linalg.solve(H + 1e-6 * np.trace(H) / 6 * np.eye(6), -g)
+                T = _perturb(T, step)
+        sig_a = sig_p = math.inf
+        if H is not None:
+            try:
+                # the last round's normal equations; residual scale floored at 0.1 px so a
+                # perfect synthetic fit does not claim a perfect pose
+                cov = np.linalg.inv(H) * max(rms, 0.1) ** 2
+                sig_a = math.sqrt(max(float(np.linalg.eigvalsh(cov[:3, :3]).max()), 0.0))
+                sig_p = math.sqrt(max(float(np.linalg.eigvalsh(cov[3:, 3:]).max()), 0.0))
+            except np.linalg.LinAlgError:
+                pass
+        ok = bool(rms <= s.max_rms_px and support >= s.min_support)
+        return Refined(T, rms, support, sig_p, sig_a, ok)
+
+    def _linearise(self, T: np.ndarray,
+                   meas: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Residuals ``dir . (uv - target)`` (px) of the measurements, their Jacobian with
+        respect to the local pose parameters (forward differences) and prior weights."""
+        eps = 1e-6
+        # the pose and its six perturbations projected in one call per camera
+        Ts = [T] + [_perturb(T, eps * np.eye(6)[i]) for i in range(6)]
+        K = self.points.shape[0]
+        pts = np.concatenate([self.points @ Ti[:3, :3].T + Ti[:3, 3] for Ti in Ts])
+        proj = [cam.project_from(Tc, pts).reshape(7, K, 2)
+                for cam, Tc in zip(self.cameras, self.T_cam_ref, strict=True)]
+        base = [p[0] for p in proj]
+        cols = [[p[i + 1] for p in proj] for i in range(6)]
+        rs, Js, ws = [], [], []
+        for c, (idx, dirs, tgt, wt) in enumerate(meas):
+            pt = idx >= 0
+            i = idx[pt]
+            r = np.einsum("ki,ki->k", base[c][i] - tgt[pt, :2], dirs[pt, :2])
+            J = np.stack([np.einsum("ki,ki->k", (cols[j][c][i] - base[c][i]) / eps,
+                                    dirs[pt, :2]) for j in range(6)], axis=1)
+            if not np.all(pt):
+                # the end pair: half the difference of the tip's and the base's offsets
+                d, g = dirs[~pt][0], tgt[~pt][0]
+                r = np.append(r, _pair(base[c], d, g))
+                J = np.vstack([J, [(_pair(cols[j][c], d, g) - r[-1]) / eps
+                                   for j in range(6)]])
+            ok = np.isfinite(r) & np.all(np.isfinite(J), axis=1)
+            rs.append(r[ok])
+            Js.append(J[ok])
+            ws.append(np.concatenate([wt[pt], wt[~pt]])[ok])
+        return np.concatenate(rs), np.concatenate(Js), np.concatenate(ws)
+
+
+def _pair(uv: np.ndarray, d: np.ndarray, g: np.ndarray) -> float:
+    """The end pair's residual (px): half the difference of the tip's offset from its
+    target along its outward direction (``d[2:]``, ``g[2:]``) and the base's
+    (``d[:2]``, ``g[:2]``), for projected arc points ``uv`` (base first, tip last)."""
+    return 0.5 * (float((uv[-1] - g[2:]) @ d[2:]) - float((uv[0] - g[:2]) @ d[:2]))
+
+
+def swage_evidence(needle: Needle, cameras: Sequence[CameraModel],
+                   ridges: Sequence[np.ndarray], T: np.ndarray, *,
+                   span: tuple[float, float] = (0.002, 0.005), points: int = 8) -> float:
+    """How much more ridge lies just beyond the base than just beyond the tip (DN, mean
+    over the views): the suture thread leaves the swage, nothing leaves the tip. Positive:
+    ``T`` has the base where the thread is; negative: the twin (base and tip swapped) is
+    right; near 0: no cue (no thread visible, or both ends hidden).
+
+    Samples ``points`` points ``span`` (m) past each end along the arc's tangent: not
+    right at the end, where a pose slid a little along the arc would read the wire.
+    """
+    d = np.linspace(span[0], span[1], points)[:, None]
+    beyond_base = needle.base - d * needle.tangent(0.0)
+    beyond_tip = needle.tip + d * needle.tangent(needle.arc)
+    diffs = []
+    for cam, ridge in zip(cameras, ridges, strict=True):
+        Tc = cam.T_cam_ref @ T
+        vals = []
+        for pts in (beyond_base, beyond_tip):
+            uv = cam.project_from(Tc, pts).astype(np.float32)
+            ok = np.all(np.isfinite(uv), axis=1) & cam.in_image(uv)
+            if not np.any(ok):
+                vals.append(math.nan)
+                continue
+            v = cv2.remap(np.asarray(ridge, np.float32), uv[ok, 0:1], uv[ok, 1:2],
+                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+            vals.append(float(np.mean(v)))
+        if all(math.isfinite(v) for v in vals):
+            diffs.append(vals[0] - vals[1])
+    return float(np.mean(diffs)) if diffs else 0.0

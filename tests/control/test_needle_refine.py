@@ -1,0 +1,208 @@
+"""Sub-pixel needle refinement and the tracker's finish (issue 7, needle tracking: the
+accuracy target and the convergence output safety uses): the crest fit, the end pair
+that fixes sliding along the arc, the circle's mirror tilt, the swage cue, the
+tracker's refusal reasons and bad input."""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from oralnav.control.camera import CameraModel
+from oralnav.control.errors import NeedleError
+from oralnav.control.geometry import transform_from_euler
+from oralnav.control.needle import Needle
+from oralnav.control.needle_features import feature_maps
+from oralnav.control.needle_refine import PoseRefiner, RefineSettings, swage_evidence
+from oralnav.control.needle_tracker import FilterSettings, NeedleTracker, mirror_tilt
+
+K = np.array([[600.0, 0, 240], [0, 600.0, 180], [0, 0, 1]])   # the stereo endoscope's f
+LEFT = CameraModel("left", (480, 360), K)
+RIGHT_T = np.eye(4)
+RIGHT_T[0, 3] = 0.005                                  # a 5 mm stereo baseline
+RIGHT = CameraModel("right", (480, 360), K, T_ref_cam=RIGHT_T)
+NEEDLE = Needle()
+T_TRUE = transform_from_euler([0.002, -0.001, 0.1], [25, -10, 30])
+WIRE_PX = 6.0                                          # 1 mm at 0.1 m
+
+
+def _draw(cam, T=T_TRUE, thread=False, noise=2.0, seed=0):
+    """A light pad with the needle drawn as an anti-aliased dark wire (6 px), optionally
+    with a thin (2 px) thread leaving the base."""
+    rng = np.random.default_rng(seed)
+    img = np.clip(170 + rng.normal(0, noise, (cam.height, cam.width)), 0, 255).astype(np.uint8)
+    Tc = cam.T_cam_ref @ T
+    # OpenCV caps thick lines round: stop the drawn axis a wire radius short of each end
+    # so the caps reach the true ends, as the needle's do
+    inset = 0.5 * NEEDLE.wire_diameter / NEEDLE.radius
+    uv = cam.project_from(Tc, NEEDLE.point(np.linspace(inset, NEEDLE.arc - inset, 300)))
+    cv2.polylines(img, [np.round(uv * 16).astype(np.int32)], False, 70, 6, cv2.LINE_AA, 4)
+    if thread:
+        d = np.linspace(0.0, 0.008, 40)[:, None]
+        pts = NEEDLE.base - d * NEEDLE.tangent(0.0)
+        uv = cam.project_from(Tc, pts)
+        cv2.polylines(img, [np.round(uv * 16).astype(np.int32)], False, 50, 2, cv2.LINE_AA, 4)
+    return img
+
+
+def _err(T, Tt):
+    R = T[:3, :3].T @ Tt[:3, :3]
+    return (np.linalg.norm(T[:3, 3] - Tt[:3, 3]),
+            math.degrees(math.acos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
+def _feats(cams, **kw):
+    return [feature_maps(_draw(c, **kw), WIRE_PX) for c in cams]
+
+
+def _ridges(cams, **kw):
+    return [f.ridge for f in _feats(cams, **kw)]
+
+
+def _perturbed(T, mm, deg, seed):
+    rng = np.random.default_rng(seed)
+    out = T.copy()
+    out[:3, 3] += rng.normal(0, mm / 1000 / math.sqrt(3), 3)
+    out[:3, :3] = Rotation.from_rotvec(rng.normal(0, math.radians(deg) / math.sqrt(3), 3)
+                                       ).as_matrix() @ out[:3, :3]
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_refinement_recovers_the_pose_from_a_coarse_start(seed):
+    """Accuracy: from about 1 mm and 4 deg off (a filter's spread), the stereo crest fit
+    lands within 0.15 mm and 1 deg of the true pose, with a small residual and the whole
+    arc found."""
+    feats = _feats([LEFT, RIGHT], seed=seed)
+    ref = PoseRefiner(NEEDLE, [LEFT, RIGHT]).refine(feats, _perturbed(T_TRUE, 1.0, 4.0, seed))
+    dp, da = _err(ref.pose, T_TRUE)
+    assert dp < 0.15e-3 and da < 1.0
+    assert ref.ok and ref.rms_px < 0.3 and ref.support > 0.95
+    assert ref.sigma_position < 0.3e-3 and math.degrees(ref.sigma_angle) < 1.0
+
+
+def test_end_pair_fixes_sliding_along_the_arc():
+    """The crest cannot see the arc slide along itself (a turn about its own axis); the
+    ends, as a difference, can: without them the turn stays and the covariance says so,
+    with them it goes."""
+    start = T_TRUE @ transform_from_euler([0, 0, 0], [0, 0, 6])     # 6 deg about N's z
+    feats = _feats([LEFT, RIGHT])
+    with_ends = PoseRefiner(NEEDLE, [LEFT, RIGHT]).refine(feats, start)
+    without = PoseRefiner(NEEDLE, [LEFT, RIGHT], RefineSettings(end_weight=0.0)
+                          ).refine(feats, start)
+    assert _err(with_ends.pose, T_TRUE)[1] < 0.5
+    assert _err(without.pose, T_TRUE)[1] > 4.0
+    assert math.degrees(without.sigma_angle) > 10 * math.degrees(with_ends.sigma_angle)
+
+
+def test_refinement_says_when_there_is_no_wire():
+    """Convergence output: on an image without the needle the fit is not ok."""
+    blank = [feature_maps(np.full((360, 480), 170, np.uint8), WIRE_PX)] * 2
+    ref = PoseRefiner(NEEDLE, [LEFT, RIGHT]).refine(blank, T_TRUE)
+    assert not ref.ok and ref.support == 0.0
+
+
+def test_mirror_tilt_is_the_other_tilt():
+    """The circle's two-fold ambiguity: the mirrored pose turns the needle's normal to
+    the same angle with the line of sight on the other side (a different pose), keeps
+    the centre, mirroring twice gives the pose back, and the crest fit started from the
+    mirror of the wrong tilt lands on the true pose."""
+    eye = LEFT.T_ref_cam[:3, 3]
+    M = mirror_tilt(T_TRUE, eye)
+    v = T_TRUE[:3, 3] - eye
+    v /= np.linalg.norm(v)
+    assert M[:3, 2] @ v == pytest.approx(T_TRUE[:3, 2] @ v, abs=1e-12)
+    assert _err(M, T_TRUE)[1] > 20
+    assert np.allclose(M[:3, 3], T_TRUE[:3, 3])
+    assert np.allclose(mirror_tilt(M, eye), T_TRUE, atol=1e-9)
+    ref = PoseRefiner(NEEDLE, [LEFT, RIGHT]).refine(_feats([LEFT, RIGHT]),
+                                                    mirror_tilt(_perturbed(M, 0.3, 2, 0), eye))
+    assert _err(ref.pose, T_TRUE)[0] < 0.2e-3 and _err(ref.pose, T_TRUE)[1] < 1.0
+
+
+def test_swage_evidence_tells_base_from_tip():
+    """The base/tip cue: with the thread drawn at the base, the evidence is positive at
+    the true pose and negative at its twin; without a thread it is near zero."""
+    cams = [LEFT, RIGHT]
+    tracker = NeedleTracker(NEEDLE, cams, FilterSettings(particles=50))
+    twin = T_TRUE.copy()
+    twin[:3, :3] = T_TRUE[:3, :3] @ tracker.filter.flip
+    ridges = _ridges(cams, thread=True)
+    assert swage_evidence(NEEDLE, cams, ridges, T_TRUE) > 10
+    assert swage_evidence(NEEDLE, cams, ridges, twin) < -10
+    assert abs(swage_evidence(NEEDLE, cams, _ridges(cams), T_TRUE)) < 3
+
+
+def _err_twin(T, Tt, flip):
+    twin = T.copy()
+    twin[:3, :3] = T[:3, :3] @ flip
+    return min(_err(T, Tt), _err(twin, Tt), key=lambda e: e[1])
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_tracker_localises_from_scratch(seed):
+    """Global localisation then the finish: the tracker finds the needle in the
+    workspace from nothing (the tilt included; base and tip are the outline's twin
+    without a thread), within 0.2 mm and 1 deg, says it has converged, and keeps it on
+    the next frame."""
+    cams = [LEFT, RIGHT]
+    feats = [feature_maps(_draw(c, seed=seed), WIRE_PX) for c in cams]
+    tracker = NeedleTracker(NEEDLE, cams, FilterSettings(particles=1500, seed=seed))
+    track = tracker.initialize(feats, (0.07, 0.13))
+    dp, da = _err_twin(track.pose, T_TRUE, tracker.filter.flip)
+    assert track.converged, track.reason
+    assert dp < 0.2e-3 and da < 1.0
+    tracker.predict()
+    track = tracker.update([feature_maps(_draw(c, seed=seed + 10), WIRE_PX) for c in cams])
+    assert track.converged
+    assert _err_twin(track.pose, T_TRUE, tracker.filter.flip)[0] < 0.2e-3
+
+
+def test_tracker_turns_to_the_thread():
+    """Base from tip: given the twin (base and tip swapped) as its estimate, the finish
+    reads the thread at the other end and reports the true pose."""
+    cams = [LEFT, RIGHT]
+    feats = [feature_maps(_draw(c, thread=True), WIRE_PX) for c in cams]
+    tracker = NeedleTracker(NEEDLE, cams, FilterSettings(particles=50))
+    twin = _perturbed(T_TRUE, 0.3, 1.0, 4)
+    twin[:3, :3] = twin[:3, :3] @ tracker.filter.flip
+    est = tracker.filter.initialize([f.distance for f in feats], (0.07, 0.13))
+    track = tracker._finish(feats, est, [twin])
+    assert track.swage > 4.0
+    dp, da = _err(track.pose, T_TRUE)
+    assert dp < 0.2e-3 and da < 1.0
+
+
+def test_tracker_refuses_without_the_needle():
+    """A step may not move: on an image without the needle the tracker reports not
+    converged, with a reason."""
+    cams = [LEFT]
+    img = _draw(LEFT)
+    feats = [feature_maps(img, WIRE_PX)]
+    tracker = NeedleTracker(NEEDLE, cams, FilterSettings(particles=300))
+    tracker.initialize(feats, (0.07, 0.13))
+    tracker.predict()
+    blank = feature_maps(np.full((360, 480), 170, np.uint8), WIRE_PX)
+    blank.distance[:] = 100.0
+    track = tracker.update([blank])
+    assert not track.converged and track.reason
+
+
+def test_bad_input_is_refused():
+    """Bad input: the wrong number of ridge images, a wrong size, a mask of the wrong
+    shape, settings that make no sense."""
+    ref = PoseRefiner(NEEDLE, [LEFT, RIGHT])
+    f = _feats([LEFT])[0]
+    with pytest.raises(NeedleError, match="feature sets"):
+        ref.refine([f], T_TRUE)
+    small = feature_maps(_draw(LEFT)[:100], WIRE_PX)
+    with pytest.raises(NeedleError, match="ridge image is"):
+        ref.refine([f, small], T_TRUE)
+    with pytest.raises(NeedleError, match="ignore mask"):
+        feature_maps(_draw(LEFT), WIRE_PX, ignore=np.zeros((10, 10), bool))
+    with pytest.raises(NeedleError):
+        RefineSettings(search_px=(0.2,))
+    with pytest.raises(NeedleError):
+        PoseRefiner(NEEDLE, [])
