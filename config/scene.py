@@ -2,12 +2,15 @@
 
 A scene names a rig file and a fields file (paths relative to the scene file), places
 fields in the rig's reference frame, adds occluders and the needle-driving objects
-(needles, tissue pads, grippers) and sets the imaging model.
+(needles, tissue pads, grippers) and sets the imaging model. Optional ``[arms.<gripper>]``
+sections give the reach of the arm carrying each gripper, for the needle-driving cell
+(:func:`load_needle_cell`).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, ClassVar
 
@@ -17,6 +20,7 @@ from pydantic import Field, field_validator, model_validator
 from oralnav.control.errors import NeedleError
 from oralnav.control.geometry import as_transform, transform_from_euler
 from oralnav.control.needle import Needle
+from oralnav.sim.needle_cell import ArmReach, CellError, NeedleCell
 from oralnav.sim.scene import Blot, Gripper, Imaging, NeedleObject, Placement, Rod, Scene, TissuePad
 
 from .errors import ConfigError
@@ -129,6 +133,9 @@ class NeedleEntry(_Posed):
     level: Level = 70.0
     specular: Level = 180.0
     shininess: Annotated[Float, Field(ge=1, le=1000)] = 20.0
+    thread_length_mm: Annotated[Float, Field(ge=0, le=500)] = 0.0
+    thread_diameter_mm: Annotated[Float, Field(gt=0, le=2)] = 0.4
+    thread_level: Level = 45.0
 
     @field_validator("T_ref_needle")
     @classmethod
@@ -172,6 +179,27 @@ class GripperEntry(_Posed):
         return _rigid(v, "T_ref_tool")
 
 
+class ArmEntry(Strict):
+    """The reach of the RCM arm that carries the gripper of the same name (m, degrees)."""
+
+    rcm: Vec3
+    min_insertion: Annotated[Float, Field(ge=0, le=2)] = 0.03
+    max_insertion: Annotated[Float, Field(gt=0, le=2)] = 0.20
+    max_wrist_angle_deg: Annotated[Float, Field(gt=0, le=180)] = 75.0
+
+    @model_validator(mode="after")
+    def _range(self) -> ArmEntry:
+        if self.min_insertion >= self.max_insertion:
+            raise ValueError(f"min_insertion ({self.min_insertion}) must be below "
+                             f"max_insertion ({self.max_insertion})")
+        return self
+
+    def reach(self) -> ArmReach:
+        return ArmReach(rcm=np.array(self.rcm, dtype=float), min_insertion=self.min_insertion,
+                        max_insertion=self.max_insertion,
+                        max_wrist_angle=math.radians(self.max_wrist_angle_deg))
+
+
 class SceneFile(Strict):
     rig: str
     fields: str
@@ -183,11 +211,49 @@ class SceneFile(Strict):
     needles: dict[str, NeedleEntry] = Field(default_factory=dict)
     pads: dict[str, PadEntry] = Field(default_factory=dict)
     grippers: dict[str, GripperEntry] = Field(default_factory=dict)
+    arms: dict[str, ArmEntry] = Field(default_factory=dict)
 
 
 def load_scene(path: str | Path) -> Scene:
-    """Read a scene file and the rig and fields files it names; all validated."""
+    """Read a scene file and the rig and fields files it names; all validated (the
+    ``[arms.*]`` sections too, which only :func:`load_needle_cell` uses)."""
+    return _load(Path(path))[0]
+
+
+def load_arms(path: str | Path) -> dict[str, ArmReach]:
+    """The ``[arms.<gripper>]`` sections of a scene file, validated with the scene."""
+    return _load(Path(path))[1]
+
+
+def load_needle_cell(path: str | Path, *, reach: Mapping[str, ArmReach] | None = None,
+                     **options) -> NeedleCell:
+    """A :class:`~oralnav.sim.needle_cell.NeedleCell` from a scene file with one needle,
+    one pad, one or two grippers and an ``[arms.<gripper>]`` section for each gripper
+    (``reach`` adds to or replaces them by gripper name). ``options`` go to the cell
+    (``kinematic_error``, ``grasp_tolerance``...)."""
     path = Path(path)
+    scene, arms = _load(path)
+    for section, objects, lo, hi in (("needles", scene.needles, 1, 1),
+                                      ("pads", scene.pads, 1, 1),
+                                      ("grippers", scene.grippers, 1, 2)):
+        if not lo <= len(objects) <= hi:
+            want = "exactly one" if lo == hi else f"{lo} to {hi}"
+            raise ConfigError(path, section, f"a needle cell needs {want} [{section}.<name>] "
+                              f"section(s), got {len(objects)}")
+    reach = {**arms, **(reach or {})}
+    missing = [g.name for g in scene.grippers if g.name not in reach]
+    if missing:
+        raise ConfigError(path, f"arms.{missing[0]}",
+                          f"no [arms.<name>] section for gripper(s) {missing}: the cell needs "
+                          "each arm's reach (rcm, min_insertion, max_insertion, "
+                          "max_wrist_angle_deg)")
+    try:
+        return NeedleCell(scene, reach, **options)
+    except CellError as exc:
+        raise ConfigError(path, "arms", str(exc)) from None
+
+
+def _load(path: Path) -> tuple[Scene, dict[str, ArmReach]]:
     doc = validate(SceneFile, read_toml(path), path)
     if not (doc.placements or doc.needles or doc.pads or doc.grippers):
         raise ConfigError(path, "placements", "a scene needs at least one object: a "
@@ -230,12 +296,19 @@ def load_scene(path: str | Path) -> Scene:
                               f"{sorted(doc.placements)}")
     blots = tuple(Blot(name=n, placement=b.placement, center=b.center, radius=b.radius,
                        level=b.level) for n, b in doc.blots.items())
+    for n in doc.arms:
+        if n not in doc.grippers:
+            raise ConfigError(path, f"arms.{n}",
+                              f"no gripper named {n!r}; an arm section is named after the "
+                              f"gripper it carries: {sorted(doc.grippers)}")
+    arms = {n: a.reach() for n, a in doc.arms.items()}
     imaging = Imaging(**doc.imaging.model_dump())
-    return Scene(rig=rig, placements=tuple(placements), rods=rods, blots=blots,
-                 imaging=imaging, seed=doc.seed, source=str(path),
-                 needles=tuple(_needle(path, n, e) for n, e in doc.needles.items()),
-                 pads=tuple(_pad(path, n, e) for n, e in doc.pads.items()),
-                 grippers=tuple(_gripper(path, n, e) for n, e in doc.grippers.items()))
+    scene = Scene(rig=rig, placements=tuple(placements), rods=rods, blots=blots,
+                  imaging=imaging, seed=doc.seed, source=str(path),
+                  needles=tuple(_needle(path, n, e) for n, e in doc.needles.items()),
+                  pads=tuple(_pad(path, n, e) for n, e in doc.pads.items()),
+                  grippers=tuple(_gripper(path, n, e) for n, e in doc.grippers.items()))
+    return scene, arms
 
 
 def _needle(path: Path, name: str, e: NeedleEntry) -> NeedleObject:
@@ -249,7 +322,10 @@ def _needle(path: Path, name: str, e: NeedleEntry) -> NeedleObject:
     except NeedleError as exc:  # the bounds above leave nothing for it, but say where
         raise ConfigError(path, key, str(exc)) from None
     return NeedleObject(name=name, needle=needle, T_ref_needle=e.pose(path, key),
-                        level=e.level, specular=e.specular, shininess=e.shininess)
+                        level=e.level, specular=e.specular, shininess=e.shininess,
+                        thread_length=e.thread_length_mm * 1e-3,
+                        thread_diameter=e.thread_diameter_mm * 1e-3,
+                        thread_level=e.thread_level)
 
 
 def _pad(path: Path, name: str, e: PadEntry) -> TissuePad:

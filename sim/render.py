@@ -25,7 +25,8 @@ hidden by a nearer object), with its obliquity.
 
 Needle-driving objects (seed 002): tissue pads, needles and grippers. A pad is a plane
 patch like a field's (a light level with a dark incision line). Needles (a torus segment
-drawn as mitred chord pieces of the wire) and grippers (box jaws and a cylinder shaft) are
+drawn as mitred chord pieces of the wire, with an optional suture thread drawn the same
+way) and grippers (box jaws and a cylinder shaft, the jaw gap overridable per render) are
 ray-cast piece by piece, each piece inside its own small box, into one sample-level
 z-buffer per camera (``_object_layer``), in which the pads take part as occluders. A needle
 lying on a pad, a needle between the jaws, or a needle half inside the tissue is thus
@@ -38,8 +39,9 @@ from __future__ import annotations
 
 import math
 import time
+import weakref
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -127,7 +129,8 @@ class Frame:
 
     ``truth`` holds the fields' truth per camera; ``needle_truth`` the needles' (per camera,
     every needle of the scene). ``T_ref_needle``, ``T_ref_pad`` and ``T_ref_tool`` are the
-    poses the needles, pads and grippers were rendered at (reference frame).
+    poses the needles, pads and grippers were rendered at (reference frame), ``opening``
+    the jaw gap (m) each gripper was rendered with.
     """
 
     images: dict[str, np.ndarray]
@@ -140,6 +143,7 @@ class Frame:
     T_ref_needle: dict[str, np.ndarray] = field(default_factory=dict)
     T_ref_pad: dict[str, np.ndarray] = field(default_factory=dict)
     T_ref_tool: dict[str, np.ndarray] = field(default_factory=dict)
+    opening: dict[str, float] = field(default_factory=dict)
 
     def truth_json(self, reference: str, image_files: Mapping[str, str] | None = None) -> dict:
         """The ``truth.json`` document (see docs/formats.md). Scenes with needles, pads or
@@ -192,6 +196,7 @@ class _Job:
     axis: np.ndarray
     margin: float
     per_piece: tuple[str, ...] = ()
+    material: int = -1     # index into the layer's materials; -1: the object's own (code)
 
 
 def _batches(jobs: list[_Job]) -> list[_Job]:
@@ -206,7 +211,7 @@ def _batches(jobs: list[_Job]) -> list[_Job]:
                 par = {n: (v[k:k + 1] if n in job.per_piece else v)
                        for n, v in job.par.items()}
                 out.append(_Job(job.code, job.kind, b[k:k + 1], par, job.axis[k:k + 1],
-                                job.margin))
+                                job.margin, material=job.material))
         else:
             out.append(job)
     return out
@@ -233,6 +238,11 @@ class _Layer:
     pads: list = field(default_factory=list)
 
 
+#: Ray maps by camera model (identity; models are frozen): renderers of the same rig, such
+#: as a new one per randomised trial, share the ~0.2 s inversion of a 640x480 model.
+_RAY_MAPS: weakref.WeakKeyDictionary[CameraModel, np.ndarray] = weakref.WeakKeyDictionary()
+
+
 class _CameraState:
     """Per-camera precomputation: the ray map, the illumination and the background."""
 
@@ -240,16 +250,19 @@ class _CameraState:
         self.cam = cam
         w, h = cam.size
         u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
-        if cam.has_distortion:
-            rays = cam.ray_map()
-            if np.isnan(rays).any():
-                bad = int(np.isnan(rays).any(axis=-1).sum())
-                raise RenderError(f"camera {cam.name!r}: the distortion model does not invert "
-                                  f"at {bad} pixels; check its dist coefficients")
-        else:
-            K = cam.K
-            rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]], axis=-1)
-        self.rays = np.ascontiguousarray(rays, dtype=np.float32)
+        rays = _RAY_MAPS.get(cam)
+        if rays is None:
+            if cam.has_distortion:
+                rays = cam.ray_map()
+                if np.isnan(rays).any():
+                    bad = int(np.isnan(rays).any(axis=-1).sum())
+                    raise RenderError(f"camera {cam.name!r}: the distortion model does not "
+                                      f"invert at {bad} pixels; check its dist coefficients")
+            else:
+                K = cam.K
+                rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]], axis=-1)
+            rays = _RAY_MAPS[cam] = np.ascontiguousarray(rays, dtype=np.float32)
+        self.rays = rays   # shared by every renderer of this camera model; never written
         gx, gy = imaging.illumination_gradient
         illum = 1.0 + gx * (u / w - 0.5) + gy * (v / h - 0.5)
         self.illumination = np.clip(illum, 0.0, None).astype(np.float32)
@@ -385,12 +398,14 @@ class SceneRenderer:
 
     # -- public -----------------------------------------------------------------------
     def render(self, poses: Mapping[str, np.ndarray] | None = None, frame: int = 0,
-               cameras: tuple[str, ...] | None = None) -> Frame:
+               cameras: tuple[str, ...] | None = None,
+               openings: Mapping[str, float] | None = None) -> Frame:
         """Render every camera (or ``cameras``) of the rig.
 
         ``poses`` overrides placements' ``T_ref_field``, needles' ``T_ref_needle``, pads'
         ``T_ref_pad`` and grippers' ``T_ref_tool`` by name (the simulated cell moves them
-        this way); ``frame`` selects the noise draw.
+        this way); ``openings`` overrides grippers' jaw gap ``opening`` (m) by name (the
+        cell opens and closes the jaws this way); ``frame`` selects the noise draw.
         """
         sc = self.scene
         poses = dict(poses or {})
@@ -399,6 +414,22 @@ class SceneRenderer:
         if unknown:
             raise RenderError(f"poses given for unknown placements or objects "
                               f"{sorted(unknown)}")
+        openings = dict(openings or {})
+        names_g = {g.name for g in sc.grippers}
+        if set(openings) - names_g:
+            raise RenderError(f"openings given for unknown grippers "
+                              f"{sorted(set(openings) - names_g)}; the scene has "
+                              f"{sorted(names_g)}")
+        for n, o in openings.items():
+            try:
+                openings[n] = float(o)
+            except (TypeError, ValueError):
+                openings[n] = math.nan
+            if not (math.isfinite(openings[n]) and openings[n] >= 0):
+                raise RenderError(f"opening of gripper {n!r} must be a finite gap >= 0 m, "
+                                  f"got {o!r}")
+        grippers = tuple(replace(g, opening=openings[g.name]) if g.name in openings else g
+                         for g in sc.grippers)
         T_ref = {p.name: np.asarray(poses.get(p.name, p.T_ref_field), dtype=float)
                  for p in sc.placements}
         T_obj = {n: np.asarray(poses.get(n, T), dtype=float) for n, T in objects.items()}
@@ -411,7 +442,7 @@ class SceneRenderer:
             t0 = time.perf_counter()
             # the noise draw belongs to the camera, whichever cameras this call renders
             ci = sc.rig.names.index(sc.rig[cam_name].name)
-            img, tr, ntr = self._render_camera(cam_name, T_ref, T_obj, frame, ci)
+            img, tr, ntr = self._render_camera(cam_name, T_ref, T_obj, frame, ci, grippers)
             images[cam_name], truth[cam_name] = img, tr
             if sc.needles:
                 needle_truth[cam_name] = ntr
@@ -420,11 +451,13 @@ class SceneRenderer:
                      seed=sc.seed, render_s=times, needle_truth=needle_truth,
                      T_ref_needle={n.name: T_obj[n.name] for n in sc.needles},
                      T_ref_pad={p.name: T_obj[p.name] for p in sc.pads},
-                     T_ref_tool={g.name: T_obj[g.name] for g in sc.grippers})
+                     T_ref_tool={g.name: T_obj[g.name] for g in sc.grippers},
+                     opening={g.name: g.opening for g in grippers})
 
     # -- one camera -------------------------------------------------------------------
     def _render_camera(self, cam_name: str, T_ref: dict[str, np.ndarray],
-                       T_obj: dict[str, np.ndarray], frame: int, cam_index: int
+                       T_obj: dict[str, np.ndarray], frame: int, cam_index: int,
+                       grippers: tuple[Gripper, ...]
                        ) -> tuple[np.ndarray, dict[str, FieldTruth], dict[str, NeedleTruth]]:
         st = self._camera(cam_name)
         cam = st.cam
@@ -449,7 +482,8 @@ class SceneRenderer:
                 pads.append((pad, T, patch))
         layer = None
         if self.scene.needles or self.scene.grippers:
-            layer = self._object_layer(st, T_cam_ref, T_obj, pads, owner=next_owner)
+            layer = self._object_layer(st, T_cam_ref, T_obj, pads, grippers,
+                                       owner=next_owner)
         if layer is not None and layer.patch is not None:
             # The layer is resolved against the pads per sample, so it goes over all of
             # them; against fields and rods it is ordered by its mean depth, as they are.
@@ -865,7 +899,7 @@ class SceneRenderer:
     def _object_layer(self, st: _CameraState, T_cam_ref: np.ndarray,
                       T_obj: dict[str, np.ndarray],
                       pads: list[tuple[TissuePad, np.ndarray, _Patch]],
-                      owner: int) -> _Layer:
+                      grippers: tuple[Gripper, ...], owner: int) -> _Layer:
         """Ray-cast every needle and gripper piece, each inside its own small box, into one
         z-buffer of supersamples; a sample whose ray meets a drawn pad before the piece is
         dropped (the pad, drawn beneath the layer, shows there).
@@ -891,10 +925,17 @@ class SceneRenderer:
             codes[nd.name] = code = len(materials)
             materials.append((nd.level, nd.specular, nd.shininess, False))
             jobs += self._needle_pieces(cam, nd, T_cam_ref @ T_obj[nd.name], code)
-        for g in self.scene.grippers:
+        for g in grippers:
             codes[g.name] = code = len(materials)
             materials.append((g.level, 0.0, 1.0, True))
             jobs += self._gripper_pieces(cam, g, T_cam_ref @ T_obj[g.name], code)
+        for nd in self.scene.needles:
+            if nd.thread_length > 0:
+                # The thread is part of its needle (its code: it does not hide the needle's
+                # centreline in the truth) drawn in its own material, matt like a rod.
+                materials.append((nd.thread_level, 0.0, 1.0, True))
+                jobs += self._thread_pieces(cam, nd, T_cam_ref @ T_obj[nd.name],
+                                            codes[nd.name], len(materials) - 1)
         jobs = [j for j in jobs if len(j.boxes)]
         if not jobs:
             return _Layer(0, 0, s, np.zeros((0, 0), np.float32), np.zeros((0, 0), np.int16),
@@ -931,7 +972,7 @@ class SceneRenderer:
                 hit[tuple(a[hidden] for a in at)] = False
             linv = np.divide(np.float32(1.0), lam, out=np.zeros(lam.shape, np.float32),
                              where=hit)
-            shade = _shade(materials[job.code], c)
+            shade = _shade(materials[job.code if job.material < 0 else job.material], c)
             sb = (boxes - [x0, y0, x0, y0]) * s
             for k in range(len(sb)):
                 bx0, by0, bx1, by1 = (int(v) for v in sb[k])
@@ -987,8 +1028,32 @@ class SceneRenderer:
         (mitre joints: adjacent pieces meet exactly, without gaps or overlaps).
         """
         needle = nd.needle
-        R, r, arc = needle.radius, 0.5 * needle.wire_diameter, needle.arc
-        coarse = transform_points(T, needle.point(np.linspace(0.0, arc, 33)))
+        x, y = np.eye(3)[0], np.eye(3)[1]
+        return self._tube_pieces(cam, T, np.zeros(3), x, y, needle.radius, needle.arc,
+                                 0.5 * needle.wire_diameter, code, caps=(True, True))
+
+    def _thread_pieces(self, cam: CameraModel, nd: NeedleObject, T: np.ndarray, code: int,
+                       material: int) -> list[_Job]:
+        """The suture thread (``NeedleObject.thread_arc``, frame N) as mitred chord pieces
+        of its arc, the needle's own construction and chord bound at the thread's radius;
+        a flat cap at its free end only (its start is inside the swage)."""
+        centre, e1, e2, angle = nd.thread_arc()
+        jobs = self._tube_pieces(cam, T, centre, e1, e2, nd.thread_bend_radius, angle,
+                                 0.5 * nd.thread_diameter, code, caps=(False, True))
+        return [replace(j, material=material) for j in jobs]
+
+    def _tube_pieces(self, cam: CameraModel, T: np.ndarray, centre: np.ndarray,
+                     e1: np.ndarray, e2: np.ndarray, R: float, arc: float, r: float,
+                     code: int, caps: tuple[bool, bool]) -> list[_Job]:
+        """A wire of radius ``r`` swept along the circular arc ``centre + R (cos a e1 +
+        sin a e2)``, ``a`` in [0, ``arc``] (frame of ``T``, the pose in the camera), as
+        mitred chord pieces (see :meth:`_needle_pieces` for the bound), with flat caps at
+        the start and the end where ``caps`` says."""
+        def circle(radius: float, a: np.ndarray) -> np.ndarray:
+            return (centre + radius * np.cos(a)[:, None] * e1
+                    + radius * np.sin(a)[:, None] * e2)
+
+        coarse = transform_points(T, circle(R, np.linspace(0.0, arc, 33)))
         if coarse[:, 2].max() <= NEAR + r:
             return []
         f = float(max(cam.K[0, 0], cam.K[1, 1]))
@@ -998,7 +1063,7 @@ class SceneRenderer:
         dphi = 2.0 * math.acos(1.0 - sag / Rv)
         n = int(min(max(math.ceil(arc / dphi), 1), 2048))
         phi = np.linspace(0.0, arc, n + 1)
-        V = transform_points(T, Rv * np.stack([np.cos(phi), np.sin(phi), 0 * phi], axis=1))
+        V = transform_points(T, circle(Rv, phi))
         seg = V[1:] - V[:-1]
         U = seg / np.linalg.norm(seg, axis=1, keepdims=True)
         Bn = np.empty_like(V)                      # mitre plane normals at the vertices
@@ -1016,8 +1081,8 @@ class SceneRenderer:
             P0=V[idx], U=U[idx], r=r, N0=Bn[idx], c0=(Bn[idx] * V[idx]).sum(1),
             N1=Bn[idx + 1], c1=(Bn[idx + 1] * V[idx + 1]).sum(1)), axis[idx], r,
             ("P0", "U", "N0", "c0", "N1", "c1"))]
-        for k, vi in ((0, 0), (n - 1, n)):          # flat caps at the base and the tip
-            if ok[k]:
+        for k, vi, cap in ((0, 0, caps[0]), (n - 1, n, caps[1])):   # flat end caps
+            if cap and ok[k]:
                 out.append(_Job(code, "disc", boxes[k:k + 1],
                                 dict(C=V[vi:vi + 1], N=U[k:k + 1], r=r), axis[k:k + 1], r))
         return out
@@ -1041,6 +1106,14 @@ class SceneRenderer:
                                 pts[None], 0.0))
         p1 = transform_points(T, np.array([[0.0, 0.0, -g.jaw_length]]))[0]
         p0 = transform_points(T, np.array([[0.0, 0.0, -g.jaw_length - g.shaft_length]]))[0]
+        # A shaft running back past the camera plane (an instrument entering from behind
+        # the endoscope) is cut where its ring would reach the near plane: a piece reaching
+        # behind the camera has no box and would drop the whole shaft.
+        z_cut = NEAR + g.shaft_radius + 1e-6
+        if p1[2] <= z_cut:
+            return out
+        if p0[2] < z_cut:
+            p0 = p1 + (p0 - p1) * ((p1[2] - z_cut) / (p1[2] - p0[2]))
         axis = p1 - p0
         u = axis / np.linalg.norm(axis)
         ends = self._bbox(cam, np.stack([p0, p1]), pad=0)
@@ -1310,6 +1383,14 @@ def _check_objects(scene: Scene) -> None:
         positive(f"needle {nd.name!r}", shininess=nd.shininess)
         if not (nd.specular >= 0 and nd.level >= 0):
             raise RenderError(f"needle {nd.name!r}: level and specular must be >= 0")
+        if not (math.isfinite(nd.thread_length) and nd.thread_length >= 0):
+            raise RenderError(f"needle {nd.name!r}: thread_length must be >= 0 m (0: no "
+                              f"thread), got {nd.thread_length}")
+        if nd.thread_length > 0:
+            positive(f"needle {nd.name!r}", thread_diameter=nd.thread_diameter,
+                     thread_bend_radius=nd.thread_bend_radius)
+            if not nd.thread_level >= 0:
+                raise RenderError(f"needle {nd.name!r}: thread_level must be >= 0")
     for pad in scene.pads:
         positive(f"pad {pad.name!r}", size_x=pad.size[0], size_y=pad.size[1],
                  incision_width=pad.incision_width)

@@ -102,6 +102,12 @@ class NeedleObject:
     DN, where ``c`` is the cosine between the surface normal and the viewing ray (a dim
     metallic base plus a Blinn-Phong highlight, which for a light at the camera peaks
     where the normal faces the camera: bright streaks along the wire).
+
+    Suture thread (``thread_length`` > 0; 0 = none): a dark strand of ``thread_diameter``
+    (m) attached at the swage, the cue that tells base from tip (the arc's outline alone
+    cannot, see ``control/needle_tracker.py``). Its shape is fixed in frame N, so it moves
+    rigidly with the needle (:meth:`thread_points`). Drawn at ``thread_level`` DN with the
+    rods' matt shading.
     """
 
     name: str
@@ -110,6 +116,36 @@ class NeedleObject:
     level: float = 70.0
     specular: float = 180.0
     shininess: float = 20.0
+    thread_length: float = 0.0
+    thread_diameter: float = 0.0004
+    thread_level: float = 45.0
+    thread_bend_radius: float = 0.025
+
+    def thread_arc(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """The thread as a circular arc in frame N: ``(centre, e1, e2, angle)`` with its
+        points ``centre + thread_bend_radius (cos a e1 + sin a e2)`` for ``a`` in ``[0,
+        angle]`` (rad), ``a = 0`` at the base.
+
+        Shape (a deterministic stand-in for a limp strand): the thread leaves the base
+        along ``-tangent(0)`` (straight on from the arc, away from the body, N's ``-y``)
+        and bends in the needle's plane with the fixed radius ``thread_bend_radius``, away
+        from the arc's centre (toward N's ``+x``), so it never crosses the needle; ``angle
+        = thread_length / thread_bend_radius``. No gravity, no contact: it goes where the
+        pose puts it (into a pad, which hides that part).
+        """
+        rho = self.thread_bend_radius
+        out = np.array([1.0, 0.0, 0.0])          # away from the arc's centre at the base
+        centre = self.needle.base + rho * out
+        return centre, -out, -self.needle.tangent(0.0), self.thread_length / rho
+
+    def thread_points(self, n: int = 32) -> np.ndarray:
+        """``n`` >= 2 points (n, 3) equally spaced along the thread's centreline, from the
+        base to the free end, in frame N (m). Empty (0, 3) without a thread."""
+        if self.thread_length <= 0:
+            return np.zeros((0, 3))
+        centre, e1, e2, angle = self.thread_arc()
+        a = np.linspace(0.0, angle, max(int(n), 2))[:, None]
+        return centre + self.thread_bend_radius * (np.cos(a) * e1 + np.sin(a) * e2)
 
 
 @dataclass(frozen=True, eq=False)

@@ -14,7 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from oralnav.config.errors import ConfigError
-from oralnav.config.scene import load_scene
+from oralnav.config.scene import load_arms, load_needle_cell, load_scene
 from oralnav.sim.scene import Scene
 
 from .helpers import edit, expect_config_error, write_file
@@ -294,6 +294,9 @@ def _nedit(old: str, new: str) -> str:
     return edit(old, new, NEEDLE_GOOD)
 
 
+ARM = "\n[arms.driver]\nrcm = [0.0, -0.05, -0.02]\n"
+
+
 NEEDLE_BROKEN = {
     "needle_unknown_key": (_nedit("radius_mm = 13.0", "radius = 0.013"),
                            "[needles.ct1] radius:", ("unknown key",)),
@@ -329,6 +332,23 @@ NEEDLE_BROKEN = {
                    ("already used in [needles]",)),
     "unknown_object_section": (NEEDLE_GOOD + "\n[sutures.s]\nlength = 0.1\n", ": sutures:",
                                ("unknown key",)),
+    "thread_negative": (_nedit("arc_deg = 180.0", "arc_deg = 180.0\nthread_length_mm = -1.0"),
+                        "[needles.ct1] thread_length_mm:", ("greater than or equal to 0",)),
+    "thread_diameter_zero": (_nedit("arc_deg = 180.0",
+                                    "arc_deg = 180.0\nthread_diameter_mm = 0.0"),
+                             "[needles.ct1] thread_diameter_mm:", ("greater than 0",)),
+    "thread_in_metres": (_nedit("arc_deg = 180.0", "arc_deg = 180.0\nthread_length = 0.015"),
+                         "[needles.ct1] thread_length:", ("unknown key",)),
+    "arm_unknown_gripper": (NEEDLE_GOOD + ARM.replace("driver", "other"), "[arms] other:",
+                            ("no gripper named 'other'", "driver")),
+    "arm_min_above_max": (NEEDLE_GOOD + ARM + "min_insertion = 0.2\nmax_insertion = 0.1\n",
+                          "[arms] driver:", ("must be below max_insertion",)),
+    "arm_rcm_short": (NEEDLE_GOOD + ARM.replace("[0.0, -0.05, -0.02]", "[0.0, -0.05]"),
+                      "[arms.driver] rcm[2]:", ("Field required",)),
+    "arm_wrist_in_radians": (NEEDLE_GOOD + ARM + "max_wrist_angle = 1.3\n",
+                             "[arms.driver] max_wrist_angle:", ("unknown key",)),
+    "arm_wrist_too_far": (NEEDLE_GOOD + ARM + "max_wrist_angle_deg = 200.0\n",
+                          "[arms.driver] max_wrist_angle_deg:", ("less than or equal to 180",)),
 }
 
 
@@ -340,3 +360,66 @@ def test_broken_needle_scene_is_one_clear_error(tmp_path, case):
     file, the section and key, and the reason."""
     text, where, reasons = NEEDLE_BROKEN[case]
     _expect(_write(tmp_path, f"{case}.toml", text), where, *reasons)
+
+
+# -- the needle cell's keys: thread and arms (issue 7, "What to build" items 1 and 4) -----
+def test_needle_cell_example_values():
+    """Items 1 and 4 (scene keys): needle_cell.toml holds the stereo endoscope, a pad, a
+    CT-1 needle with a 15 mm thread (mm in the file, metres out) lying on the pad, two open
+    grippers and an [arms.*] section for each; load_needle_cell builds the cell with that
+    reach, and the needle keeps every arc point 8 mm from the incision."""
+    path = CONFIG / "examples" / "needle_cell.toml"
+    scene = load_scene(path)
+    assert scene.rig.names == ("left", "right") and scene.rig.reference == "left"
+    (nd,), (pad,) = scene.needles, scene.pads
+    assert [g.name for g in scene.grippers] == ["left", "right"]
+    assert nd.thread_length == pytest.approx(0.015) and nd.thread_diameter == pytest.approx(
+        0.0004) and nd.thread_level == 45.0
+    T_pad_needle = np.linalg.inv(pad.T_ref_pad) @ nd.T_ref_needle
+    np.testing.assert_allclose(T_pad_needle[:3, 3], [0.004, -0.008, 0.0005], atol=1e-6)
+    np.testing.assert_allclose(T_pad_needle[:3, 2], [0.0, 0.0, 1.0], atol=1e-5)
+    arc = (nd.needle.points(100) @ T_pad_needle[:3, :3].T + T_pad_needle[:3, 3])[:, :2]
+    assert (arc[:, 1].max() <= pad.incision[0][1] - 0.008)
+    arms = load_arms(path)
+    assert set(arms) == {"left", "right"}
+    np.testing.assert_array_equal(arms["left"].rcm, [-0.05, 0.0, -0.015])
+    assert arms["right"].max_insertion == 0.16
+    assert arms["left"].max_wrist_angle == pytest.approx(np.radians(75.0))
+    cell = load_needle_cell(path)
+    assert cell.grippers == ("left", "right")
+    assert cell.arm_reach("right").max_insertion == 0.16
+    for g in scene.grippers:
+        assert cell.jaw_open(g.name)
+        np.testing.assert_array_equal(cell.gripper_pose(g.name), g.T_ref_tool)
+
+
+def test_needle_thread_and_arm_defaults(tmp_path):
+    """Items 1 and 4 (scene keys): a needle without thread keys has no thread (and the
+    documented diameter and level); an arm section with only its rcm gets the documented
+    insertion and wrist defaults."""
+    scene = load_scene(_write(tmp_path, "n.toml", NEEDLE_GOOD + ARM))
+    nd = scene.needles[0]
+    assert nd.thread_length == 0.0 and nd.thread_diameter == pytest.approx(0.0004)
+    assert nd.thread_level == 45.0
+    arm = load_arms(tmp_path / "n.toml")["driver"]
+    assert (arm.min_insertion, arm.max_insertion) == (0.03, 0.2)
+    assert arm.max_wrist_angle == pytest.approx(np.radians(75.0))
+
+
+def test_needle_cell_needs_its_objects_and_arms(tmp_path):
+    """Item 4 (building a cell from TOML): a file without an [arms.*] section for a
+    gripper, with two needles, or whose gripper starts out of its arm's reach gives one
+    ConfigError naming the file and the section; reach= can supply the missing arm."""
+    from oralnav.sim.needle_cell import ArmReach
+
+    load = partial(expect_config_error, load_needle_cell)
+    path = _write(tmp_path, "no_arm.toml", NEEDLE_GOOD)
+    load(path, "[arms] driver:", "no [arms.<name>] section", "['driver']")
+    far = ArmReach(rcm=np.array([0.0, 0.0, -0.05]), max_insertion=0.5)
+    assert load_needle_cell(path, reach={"driver": far}).grippers == ("driver",)
+    two = NEEDLE_GOOD + ARM + NEEDLE_GOOD[NEEDLE_GOOD.index("[needles.ct1]"):
+                                          NEEDLE_GOOD.index("[grippers")].replace("ct1", "ct2")
+    load(_write(tmp_path, "two.toml", two), ": needles:", "exactly one", "got 2")
+    short = NEEDLE_GOOD + ARM + "max_insertion = 0.05\n"
+    load(_write(tmp_path, "short.toml", short), ": arms:", "'driver' starts out of its arm's "
+         "reach", "max_insertion")

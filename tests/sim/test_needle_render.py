@@ -330,3 +330,120 @@ def test_example_renders_needle_pad_and_gripper(example):
         np.array([[0.0, 0.5 * g.opening + 0.5 * g.jaw_thickness, -0.002]]))[0]
     q = np.rint(tip).astype(int)
     assert abs(int(img[q[1], q[0]]) - 110) < 40       # a jaw (the gripper's level)
+
+
+# -- suture thread, jaw openings, long shafts (issue 7, "What to build" items 1 and 4) ----
+def _thread_on_pad(length: float = 0.015) -> NeedleObject:
+    """The CT-1 needle lying on PAD (its plane the pad's) with a suture thread."""
+    T = PAD_T @ transform_from_euler([0.004, -0.004, 0.0005], [0.0, 0.0, 120.0])
+    return NeedleObject("n", CT1, T, thread_length=length, thread_level=45.0)
+
+
+def test_thread_is_drawn_beyond_the_base_and_nowhere_else():
+    """Item 1 (suture thread): a needle with a thread renders dark pixels along the
+    thread's projection beyond the base (it leaves along -tangent(0) and bends in the
+    needle's plane, away from the arc), and changes no pixel anywhere else (none beyond
+    the tip); the needle's own truth is unchanged; thread_length 0 renders the needle
+    alone, byte for byte."""
+    nd = _thread_on_pad()
+    with_thread = SceneRenderer(_scene(pads=(PAD,), needles=(nd,))).render()
+    without = SceneRenderer(_scene(pads=(PAD,), needles=(replace(nd, thread_length=0.0),))
+                            ).render()
+    plain = SceneRenderer(_scene(pads=(PAD,), needles=(NeedleObject("n", CT1, nd.T_ref_needle),))
+                          ).render()
+    assert without.images["endoscope"].tobytes() == plain.images["endoscope"].tobytes()
+    img = with_thread.images["endoscope"].astype(float)
+    bare = without.images["endoscope"].astype(float)
+    pts = nd.thread_points(60)
+    # the shape: starts at the base along -tangent(0), bends away from the arc's centre
+    np.testing.assert_allclose(pts[0], CT1.base, atol=1e-15)
+    d0 = (pts[1] - pts[0]) / np.linalg.norm(pts[1] - pts[0])
+    assert d0 @ -CT1.tangent(0.0) > 0.999
+    assert np.all(np.diff(pts[:, 0]) >= 0) and np.all(pts[:, 2] == 0)
+    length = np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()
+    assert length == pytest.approx(0.015, rel=1e-3)
+    uv = CAM.project_from(nd.T_ref_needle, pts[5:])                   # clear of the swage
+    at = np.rint(uv).astype(int)
+    assert np.all(img[at[:, 1], at[:, 0]] < PAD.level - 80.0)
+    # every changed pixel lies within 3 px of the thread's projection
+    changed = np.argwhere(np.abs(img - bare) > 0.5)[:, ::-1]
+    line = CAM.project_from(nd.T_ref_needle, nd.thread_points(400))
+    dist = np.linalg.norm(changed[:, None, :] - line[None], axis=2).min(axis=1)
+    assert len(changed) > 50 and dist.max() < 3.0
+    tip = transform_points(nd.T_ref_needle, CT1.tip[None] + np.linspace(0.001, 0.015, 15)[:, None]
+                           * CT1.tangent(CT1.arc)[None])
+    q = np.rint(CAM.project(tip)).astype(int)
+    np.testing.assert_array_equal(img[q[:, 1], q[:, 0]], bare[q[:, 1], q[:, 0]])
+    a, b = with_thread.needle_truth["endoscope"]["n"], without.needle_truth["endoscope"]["n"]
+    np.testing.assert_array_equal(a.visible, b.visible)
+    assert a.visible.all()
+
+
+def test_thread_is_hidden_under_the_pad_and_by_the_jaws():
+    """Item 1 (suture thread): the thread shares the needle's and grippers' depth buffer:
+    where it runs below the pad's surface the pad shows (no pixel changes there), and a
+    gripper between it and the camera hides it."""
+    # the needle upright on the pad, its body up, its base 2 mm above the surface: the
+    # thread leaves the base straight down into the tissue
+    R = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    T = PAD_T @ make_transform(R, [0.0, 0.004, 0.002])
+    nd = NeedleObject("n", CT1, T, thread_length=0.015)
+    pts = nd.thread_points(200)
+    height = transform_points(np.linalg.inv(PAD_T) @ T, pts)[:, 2]
+    assert (height < -0.001).sum() > 150 and (height > 0.0005).sum() >= 5
+    img = SceneRenderer(_scene(pads=(PAD,), needles=(nd,))).render().images["endoscope"]
+    bare = SceneRenderer(_scene(pads=(PAD,), needles=(replace(nd, thread_length=0.0),))
+                         ).render().images["endoscope"]
+    q = np.rint(CAM.project_from(T, pts[height < -0.0008])).astype(int)
+    np.testing.assert_array_equal(img[q[:, 1], q[:, 0]], bare[q[:, 1], q[:, 0]])
+    # a gripper 3 mm above a thread point on a flat needle, between it and the camera
+    flat = _thread_on_pad()
+    p = transform_points(flat.T_ref_needle, flat.thread_points(10)[6:7])[0]
+    normal = PAD_T[:3, 2]
+    z = -normal
+    x = np.cross(PAD_T[:3, 1], z)
+    x /= np.linalg.norm(x)
+    jaw = Gripper("g", make_transform(np.column_stack([x, np.cross(z, x), z]), p + 0.003 * normal),
+                  opening=0.0, jaw_width=0.004, jaw_thickness=0.002, shaft_length=0.02)
+    with_t = SceneRenderer(_scene(pads=(PAD,), needles=(flat,), grippers=(jaw,))).render()
+    no_t = SceneRenderer(_scene(pads=(PAD,), needles=(replace(flat, thread_length=0.0),),
+                                grippers=(jaw,))).render()
+    u = np.rint(CAM.project(p[None])[0]).astype(int)
+    window = (slice(u[1] - 1, u[1] + 2), slice(u[0] - 1, u[0] + 2))
+    np.testing.assert_array_equal(with_t.images["endoscope"][window],
+                                  no_t.images["endoscope"][window])
+    # the gripper's matt shading (level 110 times 0.55..1) covers the point
+    assert 0.55 * 110.0 - 2.0 <= float(with_t.images["endoscope"][u[1], u[0]]) <= 112.0
+
+
+def test_render_takes_jaw_openings_by_name():
+    """Item 4 (rendering the cell's jaws): render(openings=...) draws a gripper with
+    another jaw gap, exactly as a scene whose gripper has that opening, records the gaps
+    in the frame, and refuses unknown grippers and negative gaps."""
+    scene = _full_scene()
+    g = scene.grippers[0]
+    a = SceneRenderer(scene).render(frame=1, openings={g.name: 0.001})
+    b = SceneRenderer(replace(scene, grippers=(replace(g, opening=0.001),))).render(frame=1)
+    c = SceneRenderer(scene).render(frame=1)
+    assert a.images["endoscope"].tobytes() == b.images["endoscope"].tobytes()
+    assert a.images["endoscope"].tobytes() != c.images["endoscope"].tobytes()
+    assert a.opening == {g.name: 0.001} and c.opening == {g.name: g.opening}
+    with pytest.raises(RenderError, match="unknown grippers \\['other'\\]"):
+        SceneRenderer(scene).render(openings={"other": 0.001})
+    with pytest.raises(RenderError, match="finite gap >= 0"):
+        SceneRenderer(scene).render(openings={g.name: -0.001})
+
+
+def test_shaft_reaching_behind_the_camera_is_still_drawn():
+    """Item 4 (rendering the cell's arms): a gripper whose shaft runs back past the
+    camera's plane (an instrument entering from beside the endoscope, its RCM behind the
+    lens) is drawn up to the near plane, not dropped."""
+    z = np.array([0.6, 0.0, 0.8])
+    x = np.array([0.0, 1.0, 0.0])
+    T = make_transform(np.column_stack([x, np.cross(z, x), z]), [0.01, 0.0, 0.09])
+    g = Gripper("g", T, shaft_length=0.3, opening=0.003)
+    assert transform_points(T, np.array([[0.0, 0.0, -0.31]]))[0, 2] < 0   # behind the lens
+    img = SceneRenderer(_scene(grippers=(g,))).render().images["endoscope"]
+    on_axis = transform_points(T, np.array([[0.0, 0.0, -0.03], [0.0, 0.0, -0.05]]))
+    for u, v in np.rint(CAM.project(on_axis)).astype(int):
+        assert img[v, u] > 60                                # the shaft, on black
