@@ -405,7 +405,9 @@ class TrackSettings:
     under ``max_sigma_position`` (m) and ``max_sigma_angle`` (rad), and the filter's
     estimate on the wire (``min_score``). ``inject``: the share of particles reset to the
     refined pose each update (with the motion noise), which keeps the swarm on the
-    precise answer; ``swage_min``: the ridge difference (DN) that decides base from tip.
+    precise answer; ``swage_min``: the ridge difference (DN) that decides base from tip;
+    ``require_swage``: without that decision the track has not converged (a drive planned
+    on the twin would push the swage first); off only for a needle without a thread.
     """
 
     max_sigma_position: float = 0.0003
@@ -413,6 +415,7 @@ class TrackSettings:
     min_score: float = 0.5
     inject: float = 0.2
     swage_min: float = 4.0
+    require_swage: bool = True      # a threaded needle: base and tip must be told apart
 
 
 @dataclass(frozen=True)
@@ -520,6 +523,9 @@ class NeedleTracker:
         elif ref.sigma_position > s.max_sigma_position or ref.sigma_angle > s.max_sigma_angle:
             reason = (f"the views leave the pose uncertain ({1e3 * ref.sigma_position:.2f} mm, "
                       f"{math.degrees(ref.sigma_angle):.1f} deg)")
+        elif s.require_swage and swage < s.swage_min:
+            reason = (f"base and tip are not told apart (thread evidence {swage:.1f} DN, "
+                      f"{s.swage_min:.1f} needed)")
         track = NeedleTrack(pose, est, ref, swage, not reason, reason)
         self.last = track
         self._moved = None

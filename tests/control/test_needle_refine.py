@@ -16,7 +16,7 @@ from oralnav.control.geometry import transform_from_euler
 from oralnav.control.needle import Needle
 from oralnav.control.needle_features import feature_maps
 from oralnav.control.needle_refine import PoseRefiner, RefineSettings, swage_evidence
-from oralnav.control.needle_tracker import FilterSettings, NeedleTracker, mirror_tilt
+from oralnav.control.needle_tracker import FilterSettings, NeedleTracker, TrackSettings, mirror_tilt
 
 K = np.array([[600.0, 0, 240], [0, 600.0, 180], [0, 0, 1]])   # the stereo endoscope's f
 LEFT = CameraModel("left", (480, 360), K)
@@ -149,7 +149,8 @@ def test_tracker_localises_from_scratch(seed):
     the next frame."""
     cams = [LEFT, RIGHT]
     feats = [feature_maps(_draw(c, seed=seed), WIRE_PX) for c in cams]
-    tracker = NeedleTracker(NEEDLE, cams, FilterSettings(particles=1500, seed=seed))
+    tracker = NeedleTracker(NEEDLE, cams, FilterSettings(particles=1500, seed=seed),
+                            settings=TrackSettings(require_swage=False))
     track = tracker.initialize(feats, (0.07, 0.13))
     dp, da = _err_twin(track.pose, T_TRUE, tracker.filter.flip)
     assert track.converged, track.reason
@@ -173,6 +174,18 @@ def test_tracker_turns_to_the_thread():
     assert track.swage > 4.0
     dp, da = _err(track.pose, T_TRUE)
     assert dp < 0.2e-3 and da < 1.0
+
+
+def test_tracker_refuses_when_base_and_tip_are_undecided():
+    """Safety: a threaded needle whose thread is not seen (here: not drawn) has its pose
+    but not its direction; the track says so and is not converged."""
+    cams = [LEFT, RIGHT]
+    feats = [feature_maps(_draw(c), WIRE_PX) for c in cams]
+    tracker = NeedleTracker(NEEDLE, cams, FilterSettings(particles=50))
+    est = tracker.filter.initialize([f.distance for f in feats], (0.07, 0.13))
+    track = tracker._finish(feats, est, [_perturbed(T_TRUE, 0.3, 1.0, 4)])
+    assert track.refined.ok and not track.converged
+    assert "base and tip" in track.reason
 
 
 def test_tracker_refuses_without_the_needle():
