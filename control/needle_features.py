@@ -82,13 +82,13 @@ def feature_maps(image: np.ndarray, wire_px: float, contrast: float = 12.0,
     # side: their raw sum peaks off the axis), and closed so a streak that matches the
     # background does not split the wire in two; anti-aliased edge pixels keep their
     # partial values, which is what places the edges, and so the axis, to sub-pixel
-    soft = cv2.min(response, np.full_like(response, min(255, int(round(3.0 * level)))))
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
-    soft = cv2.morphologyEx(soft, cv2.MORPH_CLOSE, disc)
+    closed = cv2.morphologyEx(response, cv2.MORPH_CLOSE, disc)
+    # clipping commutes with the closing (both are monotone), so one closing serves both
+    soft = cv2.min(closed, np.full_like(closed, min(255, int(round(3.0 * level)))))
     sigma = max(0.8, wire_px / 3.0)
     ridge = cv2.GaussianBlur(soft.astype(np.float32), (0, 0), sigma)
-    ends = cv2.GaussianBlur(cv2.morphologyEx(response, cv2.MORPH_CLOSE, disc).astype(np.float32),
-                            (0, 0), sigma)
+    ends = cv2.GaussianBlur(closed.astype(np.float32), (0, 0), sigma)
     src = np.where(feature, 0, 255).astype(np.uint8)
     return NeedleFeatures(cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_3), ridge,
                           ends, level)

@@ -116,18 +116,22 @@ class PoseRefiner:
         return [cam.project_from(Tc @ T, pts) for cam, Tc in zip(self.cameras, self.T_cam_ref,
                                                                   strict=True)]
 
+    def _directions(self, T: np.ndarray, p0: np.ndarray, p1: np.ndarray
+                    ) -> list[np.ndarray]:
+        """Unit image vectors from the projections of ``p0`` to those of ``p1`` (frame N,
+        (M, 3) each), per camera; NaN where they coincide."""
+        out = []
+        for pa, pb in zip(self._project(T, p0), self._project(T, p1), strict=True):
+            d = pb - pa
+            ln = np.linalg.norm(d, axis=1, keepdims=True)
+            out.append(d / np.where(ln > 0, ln, np.nan))
+        return out
+
     def _normals(self, T: np.ndarray) -> list[np.ndarray]:
         """Unit image normals of the projected arc at the sample points, per camera."""
         eps = 2e-4      # m along the tangent: a few pixels
-        a = self._project(T, self.points - eps * self.tangents)
-        b = self._project(T, self.points + eps * self.tangents)
-        out = []
-        for pa, pb in zip(a, b, strict=True):
-            d = pb - pa
-            n = np.stack([-d[:, 1], d[:, 0]], axis=1)
-            ln = np.linalg.norm(n, axis=1, keepdims=True)
-            out.append(n / np.where(ln > 0, ln, np.nan))
-        return out
+        return [np.stack([-d[:, 1], d[:, 0]], axis=1) for d in self._directions(
+            T, self.points - eps * self.tangents, self.points + eps * self.tangents)]
 
     def _peaks(self, ridge: np.ndarray, uv: np.ndarray, n: np.ndarray, half: float
                ) -> tuple[np.ndarray, np.ndarray]:
@@ -202,14 +206,7 @@ class PoseRefiner:
         eps = 2e-4
         ends = np.stack([self.points[0], self.points[-1]])
         out_dir = np.stack([-self.tangents[0], self.tangents[-1]])
-        a = self._project(T, ends)
-        b = self._project(T, ends + eps * out_dir)
-        out = []
-        for pa, pb in zip(a, b, strict=True):
-            d = pb - pa
-            ln = np.linalg.norm(d, axis=1, keepdims=True)
-            out.append(d / np.where(ln > 0, ln, np.nan))
-        return out
+        return self._directions(T, ends, ends + eps * out_dir)
 
     def _measure(self, ridges: list[np.ndarray], ends: list[np.ndarray], T: np.ndarray,
                  half: float
