@@ -358,6 +358,60 @@ def grasp_candidates(needle: Needle, drive: Drive, settings: GraspSettings) -> n
                     dtype=float)
 
 
+def _drive_figures(G_ST: np.ndarray, s: GraspSettings) -> tuple[np.ndarray, ...]:
+    """Per grasp, over the drive's gripper poses in S ``G_ST`` (k, n, 4, 4): the lowest
+    gripper tip and shaft end (m above the tissue), the lowest shaft elevation and the
+    largest shaft swing (rad), and whether the clearance and elevation rules hold."""
+    tip_y = G_ST[..., 1, 3]
+    z_T = G_ST[..., :3, 2]
+    end_y = tip_y - s.shaft_length * z_T[..., 1]
+    elevation = np.arcsin(np.clip(-z_T[..., 1], -1.0, 1.0))   # shaft above the tissue plane
+    swing = np.arccos(np.clip(np.einsum("kni,ki->kn", z_T, z_T[:, 0]), -1.0, 1.0))
+    min_tip, min_end = tip_y.min(axis=1), end_y.min(axis=1)
+    min_elev, max_swing = elevation.min(axis=1), swing.max(axis=1)
+    clear_ok = (min_tip >= s.clearance) & (min_end >= s.clearance)
+    elev_ok = ((min_elev >= s.min_shaft_elevation - 1e-9)
+               & (elevation[:, 0] >= s.approach_elevation - 1e-9))
+    return min_tip, min_end, min_elev, max_swing, clear_ok, elev_ok
+
+
+def check_drive_grasp(needle: Needle, drive: Drive, G_TN: np.ndarray,
+                      settings: GraspSettings | None = None) -> GraspChoice:
+    """The figures of one given grasp ``G_TN`` (4, 4; e.g. the grasp a hand-off actually
+    produced, seen by the tracker) over ``drive``, checked by :func:`select_grasp`'s rules:
+    the grasp point inside the band and out of the tissue for the whole drive, the
+    gripper and shaft clear of the tissue, the shaft's elevation. Refused
+    (:class:`NeedleError` naming the rule) when a rule fails: a drive on it would push
+    the jaws into the tissue or drag the grasp under the surface."""
+    s = settings or GraspSettings()
+    G_TN = _checked(G_TN)
+    fit = grasp_parameters(G_TN, needle.radius)
+    phi = grasp_point_angle(G_TN, needle, fit.params.theta0)
+    lo, hi = grasp_band(needle, s)
+    g = drive.geometry
+    out_to = math.pi + g.alpha0 - float(drive.alphas[-1])
+    if not lo - 1e-9 <= phi <= min(hi, out_to) + 1e-9:
+        raise NeedleError(
+            f"grasp: the jaws hold the needle at {math.degrees(phi):.1f} deg of arc, outside "
+            f"[{math.degrees(lo):.1f}, {math.degrees(min(hi, out_to)):.1f}] deg (away from "
+            "swage and tip, and out of the tissue for the whole drive)")
+    G_ST = (drive.G_SN @ invert(G_TN))[None]
+    min_tip, min_end, min_elev, max_swing, clear_ok, elev_ok = _drive_figures(G_ST, s)
+    if not clear_ok[0]:
+        raise NeedleError(
+            f"grasp: with this grasp the gripper comes within "
+            f"{min(min_tip[0], min_end[0]) * 1e3:.2f} mm of the tissue during the drive "
+            f"({s.clearance * 1e3:.2f} mm needed)")
+    if not elev_ok[0]:
+        raise NeedleError(
+            f"grasp: with this grasp the shaft falls to {math.degrees(min_elev[0]):.1f} deg "
+            f"above the tissue (needs {math.degrees(s.min_shaft_elevation):.1f} deg, and "
+            f"{math.degrees(s.approach_elevation):.1f} deg at entry)")
+    score = float(min_elev[0] - s.swing_weight * max_swing[0])
+    return GraspChoice(fit.params, G_TN.copy(), phi, score, float(min_tip[0]),
+                       float(min_end[0]), float(min_elev[0]), float(max_swing[0]), 1, 1, 0)
+
+
 def select_grasp(needle: Needle, drive: Drive, settings: GraspSettings | None = None,
                  reachable: Callable[[np.ndarray], bool] | None = None) -> GraspChoice:
     """Choose the driving grasp for ``drive`` (the rule is in the module docstring).
@@ -375,16 +429,7 @@ def select_grasp(needle: Needle, drive: Drive, settings: GraspSettings | None = 
     cand = grasp_candidates(needle, drive, s)
     G_TN = _grasp_transforms(cand[:, 0], cand[:, 1], cand[:, 2], cand[:, 3], needle.radius)
     G_ST = drive.G_SN[None] @ invert(G_TN)[:, None]          # (k, n, 4, 4)
-    tip_y = G_ST[..., 1, 3]
-    z_T = G_ST[..., :3, 2]
-    end_y = tip_y - s.shaft_length * z_T[..., 1]
-    elevation = np.arcsin(np.clip(-z_T[..., 1], -1.0, 1.0))   # shaft above the tissue plane
-    swing = np.arccos(np.clip(np.einsum("kni,ki->kn", z_T, z_T[:, 0]), -1.0, 1.0))
-    min_tip, min_end = tip_y.min(axis=1), end_y.min(axis=1)
-    min_elev, max_swing = elevation.min(axis=1), swing.max(axis=1)
-    clear_ok = (min_tip >= s.clearance) & (min_end >= s.clearance)
-    elev_ok = ((min_elev >= s.min_shaft_elevation - 1e-9)
-               & (elevation[:, 0] >= s.approach_elevation - 1e-9))
+    min_tip, min_end, min_elev, max_swing, clear_ok, elev_ok = _drive_figures(G_ST, s)
     ok = clear_ok & elev_ok
     if not ok.any():
         best = float(np.minimum(min_tip, min_end).max())
@@ -417,3 +462,88 @@ def select_grasp(needle: Needle, drive: Drive, settings: GraspSettings | None = 
                        float(min_tip[chosen]), float(min_end[chosen]),
                        float(min_elev[chosen]), float(max_swing[chosen]),
                        len(cand), len(order), checked)
+
+
+@dataclass(frozen=True)
+class SurfaceGraspSettings:
+    """Grasps of a needle lying on or standing out of a surface (pick-up, hand-off,
+    regrasp). Lengths m, angles rad.
+
+    ``theta0``: how deep the wire sits in the jaws (eq. 1). ``w1_values``: the wire's turn
+    about the gripper axis; ``+-pi/2`` hold it along ``x_T``, between jaws that close
+    along ``y_T`` (the simulated cell's and most needle drivers'). ``w2_steps``: gripper
+    angles about the wire over a full turn. ``min_elevation``: the shaft's lowest angle
+    above the surface plane; ``min_tip_height``: the jaw tip's lowest height above it
+    (negative: the closed jaws may press a soft surface that much, as they must to take
+    a wire lying flat on it).
+    """
+
+    theta0: float = 0.001
+    w1_values: tuple[float, ...] = (math.pi / 2, -math.pi / 2)
+    w2_steps: int = 24
+    min_elevation: float = math.radians(30.0)
+    min_tip_height: float = -0.0006
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.theta0) and self.theta0 >= 0):
+            raise NeedleError(f"surface grasp: theta0 must be >= 0 m, got {self.theta0}")
+        if not self.w1_values or not all(math.isfinite(w) for w in self.w1_values):
+            raise NeedleError(f"surface grasp: w1_values needs finite values, got "
+                              f"{self.w1_values}")
+        if self.w2_steps < 1:
+            raise NeedleError(f"surface grasp: w2_steps must be >= 1, got {self.w2_steps}")
+        if not (math.isfinite(self.min_elevation) and abs(self.min_elevation) <= math.pi / 2):
+            raise NeedleError(f"surface grasp: min_elevation must be in [-pi/2, pi/2], got "
+                              f"{self.min_elevation}")
+        if not math.isfinite(self.min_tip_height):
+            raise NeedleError("surface grasp: min_tip_height must be finite")
+
+
+@dataclass(frozen=True)
+class SurfaceGrasp:
+    """One grasp of a needle at a known pose: ``params`` (eq. 1), ``G_TN`` (4, 4),
+    ``T_ref_T`` (4, 4) the gripper pose that realises it (frame of the needle's pose),
+    ``elevation`` (rad) the shaft's angle above the surface, ``tip_height`` (m) the jaw
+    tip's height above it."""
+
+    params: GraspParameters
+    G_TN: np.ndarray = field(repr=False)
+    T_ref_T: np.ndarray = field(repr=False)
+    elevation: float
+    tip_height: float
+
+
+def surface_grasps(needle: Needle, T_ref_N: np.ndarray, phi: float,
+                   surface_point: np.ndarray, surface_normal: np.ndarray,
+                   settings: SurfaceGraspSettings | None = None) -> list[SurfaceGrasp]:
+    """Grasps of the needle at pose ``T_ref_N`` (4, 4, m) at arc angle ``phi`` (rad) from
+    the free side of a surface (``surface_point`` (3,) on it, ``surface_normal`` (3,)
+    toward the free side, both in the frame of ``T_ref_N``), steepest shaft first.
+
+    The family is eq. 1 with ``theta0`` and ``w1`` from the settings, ``w3 = phi`` and
+    ``w2`` around the wire: the wire square across the jaws, the gripper anywhere around
+    it. Kept: shaft at least ``min_elevation`` above the surface, jaw tip no lower than
+    ``min_tip_height``. Reachability is the caller's (it knows the arm). Empty when none
+    is kept. Refused (:class:`NeedleError`): ``phi`` off the needle, a zero normal.
+    """
+    s = settings or SurfaceGraspSettings()
+    if not (math.isfinite(phi) and 0.0 <= phi <= needle.arc):
+        raise NeedleError(f"surface grasp: phi {phi} rad is off the needle [0, "
+                          f"{needle.arc:.4f}] rad")
+    T = _checked(T_ref_N, "T_ref_N")
+    n = np.asarray(surface_normal, dtype=float).reshape(3)
+    norm = float(np.linalg.norm(n))
+    if not (math.isfinite(norm) and norm > 1e-9):
+        raise NeedleError(f"surface grasp: the surface normal is degenerate (norm {norm:.3g})")
+    n = n / norm
+    p0 = np.asarray(surface_point, dtype=float).reshape(3)
+    w2 = np.linspace(-math.pi, math.pi, s.w2_steps, endpoint=False)
+    cand = np.array(list(product((s.theta0,), s.w1_values, w2, (phi,))), dtype=float)
+    G = _grasp_transforms(cand[:, 0], cand[:, 1], cand[:, 2], cand[:, 3], needle.radius)
+    T_ref_T = T[None] @ invert(G)
+    elevation = np.arcsin(np.clip(-(T_ref_T[:, :3, 2] @ n), -1.0, 1.0))
+    tip_height = (T_ref_T[:, :3, 3] - p0) @ n
+    keep = (elevation >= s.min_elevation - 1e-12) & (tip_height >= s.min_tip_height)
+    order = [int(i) for i in np.argsort(-elevation, kind="stable") if keep[i]]
+    return [SurfaceGrasp(GraspParameters(*(float(v) for v in cand[i])), G[i], T_ref_T[i],
+                         float(elevation[i]), float(tip_height[i])) for i in order]

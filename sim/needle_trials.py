@@ -83,7 +83,8 @@ class TrialInfo:
     reference frame (m): the suture line the operator gives the procedure (seed 002).
     ``surface_normal`` (3,): the pad's unit normal out of the tissue, reference frame (the
     seed identifies the pad's surface by vision; given here as the operator's input, like
-    the line).
+    the line). ``surface_outline`` (4, 3): the pad's corners, reference frame (m): the
+    extent of the tissue surface, which the seed's fiducials mark; ``None`` when unknown.
     """
 
     seed: int
@@ -91,11 +92,14 @@ class TrialInfo:
     values: dict[str, Any]
     incision: np.ndarray
     surface_normal: np.ndarray
+    surface_outline: np.ndarray | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {"seed": self.seed, "difficulty": self.difficulty, "values": self.values,
                 "incision": self.incision.tolist(),
-                "surface_normal": self.surface_normal.tolist()}
+                "surface_normal": self.surface_normal.tolist(),
+                "surface_outline": (None if self.surface_outline is None
+                                    else self.surface_outline.tolist())}
 
 
 @functools.lru_cache(maxsize=4)
@@ -191,7 +195,10 @@ def trial_scene(seed: int, *, difficulty: float = 1.0, rig_file: str | Path = RI
                   grippers=grippers)
     values["imaging"] = {k: _r(v, 4) for k, v in img.items()}
     values["attempts"] = attempts
-    return scene, reach, TrialInfo(int(seed), D, values, incision, normal)
+    sx, sy = PAD_SIZE
+    corners = transform_points(pad.T_ref_pad, np.array(
+        [[-sx, -sy, 0.0], [sx, -sy, 0.0], [sx, sy, 0.0], [-sx, sy, 0.0]]) / 2)
+    return scene, reach, TrialInfo(int(seed), D, values, incision, normal, corners)
 
 
 def trial_cell(seed: int, *, difficulty: float = 1.0, **options

@@ -1,0 +1,1016 @@
+"""The visually guided needle procedure of seed 002 (§III, §IV.B): needle grasp (NG),
+hand-off (NH), drive (ND), regrasp (NR) and pull (NP), driven through a needle cell.
+
+Every step looks before it moves: the needle's pose comes from the tracker
+(:class:`~oralnav.control.needle_tracker.NeedleTracker`) on the cell's stereo images, the
+grippers' poses from the arms (what the robot reports; the simulated cell adds its fixed
+kinematic error). A step that cannot be done safely refuses before any motion toward the
+needle, with the reason (:attr:`StepResult.refused`): an undefined suture (``h > r``), a
+needle or suture no arm reaches, a tracker that has not converged. A step that moved and
+then saw something go wrong (a grasp whose needle does not follow the jaws, an arm that
+stopped on its reach limit) fails with its cause. A step's own verdict is what it saw;
+where the cell knows the truth (the simulator), each step is also checked against it
+(:attr:`StepResult.truth_ok`), which is what the Monte Carlo bench counts.
+
+The steps (docs/needle.md, "Procedure"):
+
+- **NG**: plan the suture (tissue frame from the incision, eqs. 2-4) and choose the
+  driving arm and its grasp first (:func:`~oralnav.control.needle_grasp.select_grasp`
+  with the arm's reach), so that the other arm picks the needle up far enough along the
+  arc from where the driver will take it; approach along the gripper axis, reach, close
+  (Fig. 5), lift, and check that the needle rose with the jaws.
+- **NH**: carry the needle to a hand-off pose above the suture's start, chosen so both
+  arms reach their grasps and both cameras see the needle; the driver takes it with its
+  driving grasp at the *tracked* pose, the first arm opens and goes back to its park pose
+  (Fig. 6); the driver lifts and checks that it holds.
+- **ND**: the grasp the hand-off actually produced, seen by the tracker, is checked and
+  the drive planned on it (eq. 3); approach, look again, then turn the needle about its
+  centre from the entry to past the exit.
+- **NR**: release, back off, track the needle standing in the tissue (its hidden middle
+  known from the tissue plane), grasp the tip part that stands out of the exit.
+- **NP**: turn the needle further along its own arc until the swage is out, then lift.
+
+Frames: the cell's reference frame (the endoscope's left channel, ``ref``) for
+everything; the robot base P is ``ref`` here (the cell reports and takes gripper poses in
+it, so ``G_PC`` is the identity). Metres and radians.
+
+Not thread-safe: one caller at a time (the daemon runs steps in a worker thread under a
+lock).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from oralnav.control.camera import CameraModel, Rig
+from oralnav.control.errors import NeedleError
+from oralnav.control.geometry import invert, make_transform, rotation_angle
+from oralnav.control.needle import Needle
+from oralnav.control.needle_drive import Drive, SutureGeometry, plan_drive, pull_poses, tissue_frame
+from oralnav.control.needle_features import NeedleFeatures, feature_maps
+from oralnav.control.needle_grasp import (
+    GraspChoice,
+    GraspSettings,
+    SurfaceGrasp,
+    SurfaceGraspSettings,
+    check_drive_grasp,
+    grasp_band,
+    grasp_parameters,
+    grasp_point_angle,
+    select_grasp,
+    surface_grasps,
+)
+from oralnav.control.needle_tracker import FilterSettings, NeedleTrack, NeedleTracker, TrackSettings
+from oralnav.safety.errors import StateError
+
+__all__ = ["STEPS", "NeedleCellPort", "NeedleProcedure", "ProcedureSettings", "StepResult"]
+
+#: The steps in their order (seed 002 §IV.B, Table I).
+STEPS = ("NG", "NH", "ND", "NR", "NP")
+
+
+class NeedleCellPort(Protocol):
+    """What the procedure needs of a needle cell (:class:`oralnav.sim.needle_cell.NeedleCell`
+    is one). Poses are ``T_ref_tool`` (4x4, m) as the arm reports them; ``move`` raises
+    when the arm stops short (the simulated cell's ``CellError``)."""
+
+    @property
+    def rig(self) -> Rig: ...
+    @property
+    def cameras(self) -> tuple[str, ...]: ...
+    @property
+    def needle(self) -> Needle: ...
+    @property
+    def grippers(self) -> tuple[str, ...]: ...
+    def images(self) -> dict[str, np.ndarray]: ...
+    def gripper_pose(self, name: str) -> np.ndarray: ...
+    def reachable(self, name: str, T_ref_tool: np.ndarray) -> tuple[bool, str]: ...
+    def move(self, name: str, T_ref_tool_reported: np.ndarray) -> None: ...
+    def close(self, name: str) -> bool: ...
+    def open(self, name: str) -> None: ...
+
+
+@dataclass(frozen=True)
+class ProcedureSettings:
+    """The procedure's settings. Lengths m, angles rad.
+
+    Suture: ``depth`` (the surgeon's d), ``suture_at`` (where along the incision, 0 its
+    start, 1 its end), ``overshoot`` (arc the tip is driven past the exit, for the
+    regrasp), ``drive_poses``. Motions: ``approach`` (the offset of every grasp's approach
+    pose along the gripper's -z, Fig. 5), ``lift`` (the pick-up's lift), ``retreat`` (an
+    opened gripper backs off this much), ``hold_check`` (the lift that shows whether a
+    grasp holds: the tracked needle must follow within ``hold_tolerance``).
+    Hand-off: ``handoff_heights`` (the needle raised this much above its drive start pose,
+    and turned about its centre as little as will do);
+    ``separation`` the least arc length between the two grasps; ``view_margin_px`` how far
+    inside both images the needle must be; ``min_visible`` the share of the needle no
+    gripper may hide in either view, the instruments modelled as jaws (a cylinder of
+    ``jaw_radius`` over ``jaw_length`` behind the tip) on a shaft (``tool_radius``, up to
+    ``tool_length`` behind the tip); ``max_view_angle`` the largest
+    angle between the needle's axis and the reference camera's line of sight (an
+    edge-on needle leaves its tilt uncertain). Regrasp: the grasp point stays
+    ``regrasp_exit_margin`` (arc) above the exit and ``regrasp_tip_margin`` from the tip.
+    Tracking: ``particles``, ``updates`` per look, ``init_updates`` after the global
+    initialisation, ``depth_window`` (the initialisation searches the incision's depth
+    plus or minus this), ``incision_mask_px`` (the incision line's width masked out of
+    the features: a dark line is not the needle); ``max_sigma_position`` and
+    ``max_sigma_angle``, the pose uncertainty a step may still move on (the jaws take a
+    wire within about 1 mm of where they aim). ``grasp_margin``: the driving grasp is
+    chosen this much (arc) further from the swage than the drive needs, and the pick-up
+    grasp this much further from it than ``separation``, so that the grasps the arms
+    actually make still pass. Truth checks: ``placement_tolerance``
+    (entry and exit points against the plan).
+    """
+
+    depth: float = 0.005
+    suture_at: float = 0.5
+    overshoot: float = 0.008
+    drive_poses: int = 60
+    pull_poses: int = 30
+    swage_clearance: float = 0.002
+    pull_lift: float = 0.010
+    approach: float = 0.005
+    lift: float = 0.010
+    retreat: float = 0.010
+    hold_check: float = 0.003
+    hold_tolerance: float = 0.001
+    handoff_heights: tuple[float, ...] = (0.015, 0.010, 0.020, 0.025)
+    separation: float = 0.006
+    view_margin_px: float = 15.0
+    min_visible: float = 0.75
+    max_view_angle: float = math.radians(60.0)
+    tool_radius: float = 0.003
+    tool_length: float = 0.2
+    jaw_radius: float = 0.0015
+    jaw_length: float = 0.010
+    regrasp_exit_margin: float = 0.002
+    regrasp_tip_margin: float = 0.0015
+    regrasp_turn_check: float = math.radians(5.0)
+    particles: int = 3000
+    updates: int = 3
+    init_updates: int = 3
+    depth_window: float = 0.04
+    incision_mask_px: int = 16
+    placement_tolerance: float = 0.002
+    grasp_margin: float = 0.0015
+    max_sigma_position: float = 0.0005
+    max_sigma_angle: float = math.radians(2.5)
+    seed: int = 0
+    # jaws that close along y_T hold the wire along x_T (w1 = +-pi/2); then the needle's
+    # drive turn is mostly a roll about the gripper axis only if the shaft lies near the
+    # needle's axis, close to the tissue plane: the elevation floor is relaxed and the
+    # clearance rule (tip and 20 mm of shaft 2 mm above the tissue) keeps it off
+    drive_grasp: GraspSettings = GraspSettings(w1_values=(math.pi / 2, -math.pi / 2),
+                                               w2_steps=36,
+                                               min_shaft_elevation=math.radians(-15.0),
+                                               approach_elevation=math.radians(5.0))
+    pickup_grasp: SurfaceGraspSettings = SurfaceGraspSettings()
+    regrasp: SurfaceGraspSettings = SurfaceGraspSettings(min_elevation=math.radians(20.0),
+                                                         min_tip_height=0.0005)
+
+    def __post_init__(self) -> None:
+        for name in ("overshoot", "approach", "lift", "retreat", "hold_check",
+                     "hold_tolerance", "separation", "view_margin_px", "regrasp_exit_margin",
+                     "regrasp_tip_margin", "depth_window", "placement_tolerance",
+                     "swage_clearance", "pull_lift"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise NeedleError(f"needle procedure: {name} must be >= 0, got {v}")
+        if not math.isfinite(self.depth):
+            raise NeedleError(f"needle procedure: depth must be finite, got {self.depth}")
+        if not 0.0 <= self.suture_at <= 1.0:
+            raise NeedleError(f"needle procedure: suture_at must be in [0, 1], got "
+                              f"{self.suture_at}")
+        if self.drive_poses < 2 or self.pull_poses < 2 or self.updates < 1:
+            raise NeedleError("needle procedure: drive_poses and pull_poses must be >= 2, "
+                              "updates >= 1")
+        if not self.handoff_heights:
+            raise NeedleError("needle procedure: handoff_heights needs a value")
+
+
+@dataclass
+class StepResult:
+    """One step's outcome.
+
+    ``ok``: the procedure's own verdict (what it saw); ``refused``: it stopped before
+    moving toward the needle; ``cause``: a short code when not ok (``refused_*`` for
+    refusals, e.g. ``refused_not_converged``, ``refused_out_of_reach``,
+    ``refused_bad_suture``; ``grasp_missed``, ``move_stopped``, ``lost_track`` ...),
+    ``detail`` the sentence; ``figures``: what was measured (mm, deg); ``truth_ok`` /
+    ``truth_detail``: the check against the cell's ground truth (``None`` without one);
+    ``seconds``: wall time of the step.
+    """
+
+    step: str
+    ok: bool
+    refused: bool = False
+    cause: str = ""
+    detail: str = ""
+    figures: dict[str, Any] = field(default_factory=dict)
+    truth_ok: bool | None = None
+    truth_detail: str = ""
+    seconds: float = 0.0
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class _StepFailed(Exception):
+    """Raised inside a step: ends it with ``cause`` and the message."""
+
+    def __init__(self, cause: str, detail: str, refused: bool = False) -> None:
+        super().__init__(detail)
+        self.cause, self.detail, self.refused = cause, detail, refused
+
+
+def _refuse(cause: str, detail: str) -> _StepFailed:
+    return _StepFailed(f"refused_{cause}", detail, refused=True)
+
+
+def _translation(v: np.ndarray) -> np.ndarray:
+    return make_transform(t=np.asarray(v, dtype=float))
+
+
+def _back_off(T: np.ndarray, d: float) -> np.ndarray:
+    """``T`` moved ``d`` (m) along its own -z (out of the jaws' way)."""
+    return T @ make_transform(t=[0.0, 0.0, -d])
+
+
+def _turn_about(axis: np.ndarray, angle: float, point: np.ndarray) -> np.ndarray:
+    """A rotation by ``angle`` about the line through ``point`` along ``axis`` (4x4)."""
+    a = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    R, _ = cv2.Rodrigues(a * angle)
+    T = make_transform(R)
+    T[:3, 3] = point - R @ point
+    return T
+
+
+def _turns(step_deg: float = 30.0, axes: int = 40) -> list[np.ndarray]:
+    """Rotations (3x3) of angles 0, step, ..., 180 deg about ``axes`` directions spread
+    over the sphere (a Fibonacci lattice), the identity first, then by angle."""
+    k = np.arange(axes) + 0.5
+    z = 1.0 - 2.0 * k / axes
+    az = math.pi * (1.0 + 5.0 ** 0.5) * k
+    dirs = np.stack([np.sqrt(1 - z * z) * np.cos(az), np.sqrt(1 - z * z) * np.sin(az), z], 1)
+    out = [np.eye(3)]
+    for a in np.arange(step_deg, 180.0 + 1e-9, step_deg):
+        out += [cv2.Rodrigues(d * math.radians(a))[0] for d in dirs]
+    return out
+
+
+#: The hand-off's candidate turns of the needle from its drive start orientation.
+_HANDOFF_TURNS = _turns()
+
+
+def _path(T0: np.ndarray, T1: np.ndarray, n: int = 8) -> list[np.ndarray]:
+    """``n`` poses along the straight-line, slerp path from ``T0`` to ``T1`` (the cell's
+    motion), ``T1`` last: a goal the arm reaches by a path it cannot follow is no goal."""
+    rots = Rotation.from_matrix(np.stack([T0[:3, :3], T1[:3, :3]]))
+    f = np.arange(1, n + 1) / n
+    R = Slerp([0.0, 1.0], rots)(f).as_matrix()
+    out = []
+    for k in range(n):
+        T = np.eye(4)
+        T[:3, :3] = R[k]
+        T[:3, 3] = T0[:3, 3] + f[k] * (T1[:3, 3] - T0[:3, 3])
+        out.append(T)
+    return out
+
+
+def _pose_error(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """Centre distance (mm) and rotation angle (deg) between two needle poses."""
+    return (float(np.linalg.norm(T[:3, 3] - T_true[:3, 3])) * 1e3,
+            math.degrees(rotation_angle(T[:3, :3], T_true[:3, :3])))
+
+
+class NeedleProcedure:
+    """The five steps on one cell (see the module docstring).
+
+    ``incision`` (2, 3): the suture line's start and end on the tissue surface, ``ref``
+    frame (m): the operator's input (seed 002 finds it by vision); ``surface_normal``
+    (3,): the tissue surface's normal, out of the tissue. ``surface_outline`` (k, 3),
+    optional: the tissue surface's corners in order (a convex polygon, ``ref``); when
+    given, the needle is only carried where both cameras see it against the tissue (the
+    thin-feature measurement finds a wire darker than what lies behind it).
+    ``arms``: the two grippers to use (default: the cell's). The steps run in order, each
+    once: :meth:`run` refuses a step out of turn (:class:`~oralnav.safety.errors.StateError`).
+    """
+
+    def __init__(self, cell: NeedleCellPort, incision: np.ndarray, surface_normal: np.ndarray,
+                 settings: ProcedureSettings | None = None,
+                 arms: Sequence[str] | None = None,
+                 surface_outline: np.ndarray | None = None) -> None:
+        self.cell = cell
+        self.s = s = settings or ProcedureSettings()
+        inc = np.asarray(incision, dtype=float)
+        n = np.asarray(surface_normal, dtype=float).reshape(3)
+        if inc.shape != (2, 3) or not np.all(np.isfinite(inc)):
+            raise NeedleError(f"needle procedure: the incision must be 2 finite 3-D points, "
+                              f"got shape {inc.shape}")
+        norm = float(np.linalg.norm(n))
+        if not (math.isfinite(norm) and norm > 1e-9):
+            raise NeedleError("needle procedure: the surface normal is zero or not finite")
+        self.incision, self.normal = inc, n / norm
+        self.outline: np.ndarray | None = None
+        if surface_outline is not None:
+            o = np.asarray(surface_outline, dtype=float)
+            if o.ndim != 2 or o.shape[1] != 3 or len(o) < 3 or not np.all(np.isfinite(o)):
+                raise NeedleError(f"needle procedure: the surface outline must be >= 3 finite "
+                                  f"3-D points, got shape {o.shape}")
+            self.outline = o
+        self.arms = tuple(arms) if arms is not None else tuple(cell.grippers)
+        if len(self.arms) != 2 or len(set(self.arms)) != 2:
+            raise NeedleError(f"needle procedure: needs two distinct arms for the hand-off, "
+                              f"got {list(self.arms)} (a one-arm cell cannot run NH)")
+        for a in self.arms:
+            if a not in cell.grippers:
+                raise NeedleError(f"needle procedure: unknown arm {a!r}; the cell has "
+                                  f"{list(cell.grippers)}")
+        self.needle = cell.needle
+        self.cams: list[CameraModel] = [cell.rig[c] for c in cell.cameras]
+        self.tracker = NeedleTracker(
+            self.needle, self.cams, FilterSettings(particles=s.particles, seed=s.seed),
+            settings=TrackSettings(max_sigma_position=s.max_sigma_position,
+                                   max_sigma_angle=s.max_sigma_angle))
+        self.park = {a: cell.gripper_pose(a) for a in self.arms}
+        # the incision's depth sets the features' wire width and the search depth
+        mid = inc.mean(axis=0)
+        self._wire_px, self._masks = [], []
+        for cam in self.cams:
+            z = float((cam.T_cam_ref[:3, :3] @ mid + cam.T_cam_ref[:3, 3])[2])
+            if z <= 0:
+                raise NeedleError(f"needle procedure: the incision is behind camera "
+                                  f"{cam.name!r}")
+            self._wire_px.append(cam.K[0, 0] * self.needle.wire_diameter / z)
+            uv = cam.project_from(cam.T_cam_ref, inc)
+            m = np.zeros((cam.height, cam.width), np.uint8)
+            if np.all(np.isfinite(uv)):
+                a, b = (tuple(int(v) for v in np.round(p)) for p in uv)
+                cv2.line(m, a, b, 1, int(s.incision_mask_px))
+            self._masks.append(m.astype(bool))
+        z_ref = float(mid[2])
+        self._depth_range = (max(z_ref - s.depth_window, 0.01), z_ref + s.depth_window)
+        # state
+        self.results: dict[str, StepResult] = {}
+        self.track: NeedleTrack | None = None
+        self.G_CS: np.ndarray | None = None
+        self.geometry: SutureGeometry | None = None
+        self.drive: Drive | None = None
+        self.drive_choice: GraspChoice | None = None
+        self.driver: str | None = None
+        self.picker: str | None = None
+        self.holder: str | None = None        # who the procedure believes holds the needle
+        self.G_TN: np.ndarray | None = None   # its grasp, as last seen by the tracker
+        self.in_tissue = False
+
+    # -- public ---------------------------------------------------------------------------
+    @property
+    def next_step(self) -> str | None:
+        """The step that may run now (``None``: all done, or a step failed)."""
+        for st in STEPS:
+            r = self.results.get(st)
+            if r is None:
+                return st
+            if not r.ok:
+                return None
+        return None
+
+    def run(self, step: str) -> StepResult:
+        """Run ``step`` (one of :data:`STEPS`, in order). Raises :class:`StateError` for a
+        step out of turn or after a failure; otherwise returns the result, refusals and
+        failures included."""
+        step = step.upper()
+        if step not in STEPS:
+            raise StateError(f"unknown needle step {step!r}; the steps are {list(STEPS)}")
+        nxt = self.next_step
+        if step != nxt:
+            if nxt is None:
+                failed = [k for k, r in self.results.items() if not r.ok]
+                why = (f"step {failed[0]} failed ({self.results[failed[0]].detail})"
+                       if failed else "all steps are done")
+                raise StateError(f"needle step {step} cannot run: {why}; load a new cell")
+            raise StateError(f"needle step {step} cannot run yet: {nxt} comes first")
+        t0 = time.perf_counter()
+        res = StepResult(step, ok=False)
+        try:
+            figures = getattr(self, f"_step_{step.lower()}")()
+            res.ok, res.figures = True, figures
+        except _StepFailed as exc:
+            res.cause, res.detail, res.refused = exc.cause, exc.detail, exc.refused
+        res.seconds = round(time.perf_counter() - t0, 3)
+        self._check_truth(res)
+        self.results[step] = res
+        return res
+
+    def run_all(self) -> list[StepResult]:
+        """Run the steps in order until one fails; the results of those that ran."""
+        out = []
+        while (st := self.next_step) is not None:
+            out.append(self.run(st))
+        return out
+
+    def status(self) -> dict[str, Any]:
+        """JSON-able: next step, results so far, the roles of the arms, the last track."""
+        tr = self.track
+        return {"next": self.next_step, "arms": {"picker": self.picker, "driver": self.driver,
+                                                 "holder": self.holder},
+                "results": {k: r.to_json() for k, r in self.results.items()},
+                "track": None if tr is None else {
+                    "converged": tr.converged, "reason": tr.reason,
+                    "T_ref_N": tr.pose.tolist(), "swage": round(tr.swage, 2)}}
+
+    # -- tracking -------------------------------------------------------------------------
+    def _features(self) -> list[NeedleFeatures]:
+        imgs = self.cell.images()
+        return [feature_maps(imgs[cam.name], w, ignore=m)
+                for cam, w, m in zip(self.cams, self._wire_px, self._masks, strict=True)]
+
+    def _look(self, delta: np.ndarray | None = None, *, static: bool = True,
+              init: bool = False) -> NeedleTrack:
+        """Track on fresh frames: a global initialisation (``init``), or ``updates``
+        updates, the first predicted with the gripper's motion ``delta`` (a held needle),
+        the others with no motion (``static``: held or in the tissue, the grasped noise)
+        or Brownian motion (free)."""
+        s = self.s
+        still = np.eye(4) if static else None
+        if init:
+            tr = self.tracker.initialize(self._features(), self._depth_range)
+            for _ in range(s.init_updates):
+                self.tracker.predict(still)
+                tr = self.tracker.update(self._features())
+        else:
+            tr = None
+            for k in range(s.updates):
+                self.tracker.predict(delta if k == 0 and delta is not None else still)
+                tr = self.tracker.update(self._features())
+        assert tr is not None
+        self.track = tr
+        return tr
+
+    def _converged(self, what: str, **look: Any) -> np.ndarray:
+        """Look; the tracked ``T_ref_N``, or a refusal naming why the tracker has not
+        converged."""
+        tr = self._look(**look)
+        if not tr.converged:
+            raise _refuse("not_converged", f"{what}: the needle tracker has not converged "
+                                           f"({tr.reason})")
+        return tr.pose
+
+    def _grasp_seen(self, arm: str, T_ref_N: np.ndarray) -> np.ndarray:
+        """The grasp ``G_TN`` as the tracker sees it: ``inv(T_ref_T) T_ref_N``."""
+        return invert(self.cell.gripper_pose(arm)) @ T_ref_N
+
+    # -- motion ---------------------------------------------------------------------------
+    def _move(self, arm: str, T: np.ndarray, what: str) -> None:
+        try:
+            self.cell.move(arm, T)
+        except Exception as exc:   # the cell's own error type; the arm stopped short
+            raise _StepFailed("move_stopped", f"{what}: {exc}") from None
+
+    def _reach(self, arm: str, poses: Sequence[np.ndarray]) -> tuple[bool, str]:
+        for T in poses:
+            ok, why = self.cell.reachable(arm, T)
+            if not ok:
+                return False, why
+        return True, ""
+
+    def _verify_hold(self, arm: str, T_goal: np.ndarray, what: str) -> np.ndarray:
+        """Move ``arm`` (which should hold the needle) to ``T_goal`` and look: the needle
+        must have moved with the jaws. Returns the tracked ``T_ref_N``."""
+        assert self.track is not None
+        before = self.track.pose
+        T0 = self.cell.gripper_pose(arm)
+        self._move(arm, T_goal, f"{what}: the check motion")
+        delta = self.cell.gripper_pose(arm) @ invert(T0)
+        tr = self._look(delta)
+        moved = delta @ before
+        if not tr.converged:
+            raise _StepFailed("lost_track", f"{what}: the tracker lost the needle after the "
+                                            f"check motion ({tr.reason})")
+        off = float(np.linalg.norm(tr.pose[:3, 3] - moved[:3, 3]))
+        stay = float(np.linalg.norm(tr.pose[:3, 3] - before[:3, 3]))
+        if off > self.s.hold_tolerance or off >= stay:
+            raise _StepFailed("grasp_missed",
+                              f"{what}: the needle did not follow the jaws ({off * 1e3:.2f} mm "
+                              f"from where it would be if held, {stay * 1e3:.2f} mm from "
+                              "where it was)")
+        return tr.pose
+
+    def _view(self, T_ref_N: np.ndarray, tools: Sequence[np.ndarray] = ()) -> str:
+        """Why the cameras would not see the needle well at ``T_ref_N`` ("" when they
+        would): every camera must see the whole needle ``view_margin_px`` inside the
+        image, no more than ``1 - min_visible`` of it behind the grippers at ``tools``
+        (their ``T_ref_T``) and, with an outline, against the tissue surface; the
+        reference view at most ``max_view_angle`` from face-on."""
+        s = self.s
+        pts = self.needle.points(48) @ T_ref_N[:3, :3].T + T_ref_N[:3, 3]
+        centre = T_ref_N[:3, 3] - self.cams[0].T_ref_cam[:3, 3]
+        facing = abs(float(T_ref_N[:3, 2] @ centre)) / float(np.linalg.norm(centre))
+        if facing < math.cos(s.max_view_angle):
+            return "edge-on to the camera"
+        m = s.view_margin_px
+        for cam in self.cams:
+            uv = cam.project_from(cam.T_cam_ref, pts)
+            if not (np.all(np.isfinite(uv)) and np.all(uv >= m)
+                    and np.all(uv[:, 0] <= cam.width - 1 - m)
+                    and np.all(uv[:, 1] <= cam.height - 1 - m)):
+                return "out of view"
+            hidden = np.zeros(len(pts), dtype=bool)
+            for T in tools:
+                hidden |= self._behind_tool(cam, uv, T)
+            if 1.0 - hidden.mean() < s.min_visible:
+                return "hidden by the grippers"
+            if self.outline is not None:
+                hidden |= ~self._backdrop(cam, pts)
+                if 1.0 - hidden.mean() < s.min_visible:
+                    return "hidden or not against the tissue"
+        return ""
+
+    def _behind_tool(self, cam: CameraModel, uv: np.ndarray, T_ref_T: np.ndarray
+                     ) -> np.ndarray:
+        """Which image points ``uv`` (k, 2) the gripper at ``T_ref_T`` may hide: those
+        within the image of its jaws or its shaft (cylinders along -z behind the tip, cut
+        at 1 cm in front of the camera). Depth is ignored, so a point in front of the tool
+        counts as hidden too: the estimate errs toward refusing a view."""
+        s = self.s
+        tip, z = T_ref_T[:3, 3], T_ref_T[:3, 2]
+        hidden = self._behind_cylinder(cam, uv, tip, tip - s.jaw_length * z, s.jaw_radius)
+        hidden |= self._behind_cylinder(cam, uv, tip - s.jaw_length * z,
+                                        tip - s.tool_length * z, s.tool_radius)
+        return hidden
+
+    @staticmethod
+    def _behind_cylinder(cam: CameraModel, uv: np.ndarray, a: np.ndarray, b: np.ndarray,
+                         radius: float) -> np.ndarray:
+        """Which of ``uv`` (k, 2) lie within the image of the cylinder of ``radius`` (m)
+        from ``a`` to ``b`` (ref frame)."""
+        A = cam.T_cam_ref[:3, :3] @ np.stack([a, b]).T + cam.T_cam_ref[:3, 3:4]
+        za, zb = A[2]
+        near = 0.01
+        if za <= near and zb <= near:
+            return np.zeros(len(uv), dtype=bool)
+        if za <= near or zb <= near:
+            cut = A[:, 0] + (near - za) / (zb - za) * (A[:, 1] - A[:, 0])
+            A = np.stack([A[:, 0] if za > near else cut, A[:, 1] if zb > near else cut], 1)
+        ends = cam.project(A.T)
+        d = ends[1] - ends[0]
+        L2 = float(d @ d)
+        t = np.clip(((uv - ends[0]) @ d) / L2, 0.0, 1.0) if L2 > 0 else np.zeros(len(uv))
+        dist = np.linalg.norm(uv - (ends[0] + t[:, None] * d), axis=1)
+        # the cylinder's image widens toward the camera: 1/z runs linearly along its image
+        radius_px = cam.K[0, 0] * radius * ((1.0 - t) / A[2, 0] + t / A[2, 1])
+        return dist <= radius_px
+
+    def _backdrop(self, cam: CameraModel, pts: np.ndarray) -> np.ndarray:
+        """Which of ``pts`` (k, 3, ref) ``cam`` sees against the tissue: the ray through
+        the point meets the tissue plane beyond it, inside the outline (a convex polygon
+        in the plane)."""
+        assert self.outline is not None
+        o = cam.T_ref_cam[:3, 3]
+        n, p0 = self.normal, self.outline[0]
+        d = pts - o
+        den = d @ n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = ((p0 - o) @ n) / den
+        beyond = np.abs(den) > 1e-12
+        beyond &= lam > 1.0             # the surface must lie beyond the needle
+        hit = o + np.where(beyond, lam, 0.0)[:, None] * d
+        edges = np.roll(self.outline, -1, axis=0) - self.outline
+        # the polygon's winding about the normal: inside is on the same side of every edge
+        sign = 1.0 if float(np.cross(edges[0], edges[1]) @ n) >= 0 else -1.0
+        inside = beyond
+        for a, e in zip(self.outline, edges, strict=True):
+            inside &= sign * (np.cross(e, hit - a) @ n) > 0
+        return inside
+
+    # -- planning -------------------------------------------------------------------------
+    def _plan(self) -> dict[str, Any]:
+        """The suture and the driving arm with its grasp (before anything moves)."""
+        s, inc = self.s, self.incision
+        point = inc[0] + s.suture_at * (inc[1] - inc[0])
+        try:
+            self.geometry = SutureGeometry.for_needle(self.needle, s.depth)
+            self.G_CS = tissue_frame(inc[0], inc[1], self.normal, suture_point=point)
+            drive = plan_drive(np.eye(4), self.G_CS, self.geometry, s.drive_poses,
+                               overshoot=s.overshoot)
+        except NeedleError as exc:
+            raise _refuse("bad_suture", str(exc)) from None
+        options, why = [], {}
+        pick = replace(s.drive_grasp, swage_margin=s.drive_grasp.swage_margin + s.grasp_margin)
+        for arm in self.arms:
+            try:
+                choice = select_grasp(self.needle, drive, pick,
+                                      reachable=lambda T, a=arm: self.cell.reachable(a, T)[0])
+            except NeedleError as exc:
+                why[arm] = str(exc)
+                continue
+            options.append((choice.score, arm, choice))
+        if not options:
+            raise _refuse("out_of_reach", "no arm can drive this suture: " + "; ".join(
+                f"{a}: {w}" for a, w in why.items()))
+        _, self.driver, self.drive_choice = max(options, key=lambda o: o[0])
+        self.picker = next(a for a in self.arms if a != self.driver)
+        self.drive = drive
+        return {"driver": self.driver, "picker": self.picker,
+                "drive_grasp_phi_deg": round(math.degrees(self.drive_choice.phi), 2),
+                "entry_ref": self._to_ref(self.geometry.entry).tolist(),
+                "exit_ref": self._to_ref(self.geometry.exit).tolist()}
+
+    def _to_ref(self, p_S: np.ndarray) -> np.ndarray:
+        assert self.G_CS is not None
+        return self.G_CS[:3, :3] @ p_S + self.G_CS[:3, 3]
+
+    # -- the steps ------------------------------------------------------------------------
+    def _step_ng(self) -> dict[str, Any]:
+        s = self.s
+        figures = self._plan()
+        T_N = self._converged("grasp", init=True, static=False)
+        assert self.drive_choice is not None and self.picker is not None
+        arm, r = self.picker, self.needle.radius
+        lo, hi = grasp_band(self.needle, s.drive_grasp)
+        phi_B = self.drive_choice.phi
+        # the pick-up grasp leaves the driver's grasp point free (the hand-off puts both
+        # jaws on the needle)
+        gap = (s.separation + s.grasp_margin) / r
+        free = [(max(lo, phi_B + gap), hi), (lo, min(hi, phi_B - gap))]
+        phis = np.concatenate([np.linspace(a, b, 7) for a, b in free if b >= a] or [[]])
+        if not phis.size:
+            raise _refuse("no_grasp", "no part of the needle is free for the pick-up grasp "
+                                      f"{s.separation * 1e3:.1f} mm from the driving grasp")
+        point = self.incision.mean(axis=0)
+        up = _translation(s.lift * self.normal)
+        why: dict[str, int] = {}
+        handoffs = self._handoff_candidates()
+        chosen: tuple[SurfaceGrasp, np.ndarray] | None = None
+        # of the grasps the arm reaches and sees past, the first that also has a hand-off
+        # pose: the pick-up decides how the needle sits in the holder's jaws, and so where
+        # the two arms can meet
+        grasps = [g for phi in phis for g in surface_grasps(
+            self.needle, T_N, float(phi), point, self.normal, s.pickup_grasp)]
+        grasps.sort(key=lambda g: -g.elevation)
+        for g in grasps:
+            ok, _ = self._reach(arm, [g.T_ref_T, _back_off(g.T_ref_T, s.approach),
+                                      up @ g.T_ref_T])
+            if not ok:
+                why["out of reach"] = why.get("out of reach", 0) + 1
+                continue
+            seen = self._view(up @ T_N, [up @ g.T_ref_T])
+            if seen:
+                why[f"lifted needle {seen}"] = why.get(f"lifted needle {seen}", 0) + 1
+                continue
+            T_h = self._meeting(g.G_TN, handoffs, None, why)
+            if T_h is not None:
+                chosen = (g, T_h)
+                break
+        if chosen is None:
+            raise _refuse("out_of_reach", f"arm {arm!r} has no pick-up grasp of the tracked "
+                                          f"needle that leads to a hand-off ("
+                                          + ", ".join(f"{k}: {v}" for k, v in why.items())
+                                          + ")")
+        g, _ = chosen
+        self._move(arm, _back_off(g.T_ref_T, s.approach), "pick-up approach")
+        self._move(arm, g.T_ref_T, "pick-up reach")
+        self.cell.close(arm)
+        T_N = self._verify_hold(arm, up @ self.cell.gripper_pose(arm), "pick-up")
+        self.holder, self.G_TN = arm, self._grasp_seen(arm, T_N)
+        figures.update(arm=arm, grasp_phi_deg=round(math.degrees(g.params.phi), 2),
+                       shaft_elevation_deg=round(math.degrees(g.elevation), 1),
+                       pickup_candidates=len(grasps))
+        return figures
+
+    def _handoff_candidates(self) -> list[tuple[np.ndarray, np.ndarray, float, float]]:
+        """Needle poses for the hand-off where the driver reaches its driving grasp and
+        its approach: the drive's start pose raised ``handoff_heights`` above the tissue
+        and turned about the needle's centre, the least turn first. Items: ``(T_ref_N,
+        driver's T_ref_T, turn (rad), height (m))``."""
+        s = self.s
+        assert self.drive is not None and self.drive_choice is not None
+        B = self.driver
+        assert B is not None
+        start = self.drive.G_PS @ self.drive.G_SN[0]
+        G_NT_B = invert(self.drive_choice.G_TN)
+        out = []
+        for turn in _HANDOFF_TURNS:
+            for H in s.handoff_heights:
+                T_h = start.copy()
+                T_h[:3, :3] = turn @ start[:3, :3]
+                T_h[:3, 3] += H * self.normal
+                T_B = T_h @ G_NT_B
+                if self._reach(B, [T_B, _back_off(T_B, s.approach)])[0]:
+                    out.append((T_h, T_B, rotation_angle(turn, np.eye(3)), H))
+        return out
+
+    def _meeting(self, G_TN_A: np.ndarray, handoffs: Sequence[tuple], T_A0: np.ndarray | None,
+                 why: dict[str, int]) -> tuple | None:
+        """The first hand-off candidate where the holder, gripping with ``G_TN_A``,
+        reaches (along its straight path from ``T_A0``, when given) and both cameras see
+        the needle past both grippers; ``why`` counts the refusals."""
+        A = self.picker
+        assert A is not None
+        G_NT_A = invert(G_TN_A)
+        for item in handoffs:
+            T_h, T_B = item[0], item[1]
+            T_A = T_h @ G_NT_A
+            poses = [T_A] if T_A0 is None else _path(T_A0, T_A)
+            if not self._reach(A, poses)[0]:
+                why[f"{A} cannot hold it there"] = why.get(f"{A} cannot hold it there", 0) + 1
+                continue
+            seen = self._view(T_h, [T_B, T_A])
+            if seen:
+                why[f"hand-off {seen}"] = why.get(f"hand-off {seen}", 0) + 1
+                continue
+            return item
+        return None
+
+    def _step_nh(self) -> dict[str, Any]:
+        s = self.s
+        A, B = self.picker, self.driver
+        assert A is not None and B is not None and self.drive_choice is not None
+        T_N = self._converged("hand-off")
+        G_TN_A = self._grasp_seen(A, T_N)
+        phi_A = grasp_point_angle(G_TN_A, self.needle, s.pickup_grasp.theta0)
+        gap = abs(phi_A - self.drive_choice.phi) * self.needle.radius
+        if gap < s.separation:
+            raise _refuse("no_grasp", f"the needle sits in {A!r}'s jaws {gap * 1e3:.1f} mm "
+                                      f"from the driving grasp (needs {s.separation * 1e3:.1f}"
+                                      " mm): the jaws would meet")
+        why: dict[str, int] = {}
+        handoffs = self._handoff_candidates()
+        item = self._meeting(G_TN_A, handoffs, self.cell.gripper_pose(A), why)
+        if item is None:
+            raise _refuse("out_of_reach", f"none of {len(handoffs)} hand-off poses the driver "
+                                          "reaches suits the holder and the cameras ("
+                                          + ", ".join(f"{k}: {v}" for k, v in why.items())
+                                          + ")")
+        T_h = item[0]
+        figures: dict[str, Any] = {"handoff_height_mm": round(item[3] * 1e3, 1),
+                                   "handoff_turn_deg": round(math.degrees(item[2]), 1)}
+        T0 = self.cell.gripper_pose(A)
+        self._move(A, T_h @ invert(G_TN_A), "carry to the hand-off pose")
+        delta = self.cell.gripper_pose(A) @ invert(T0)
+        tr = self._look(delta)
+        if not tr.converged:
+            raise _StepFailed("lost_track", f"hand-off: the tracker lost the needle at the "
+                                            f"hand-off pose ({tr.reason})")
+        T_B = tr.pose @ invert(self.drive_choice.G_TN)
+        ok, why = self._reach(B, [T_B, _back_off(T_B, s.approach)])
+        if not ok:
+            raise _StepFailed("out_of_reach", f"hand-off: {B!r} cannot reach the needle where "
+                                              f"it was carried ({why})")
+        self._move(B, _back_off(T_B, s.approach), "hand-off approach")
+        self._move(B, T_B, "hand-off reach")
+        self.cell.close(B)
+        self.cell.open(A)
+        self.holder = B
+        for goal, what in ((_back_off(self.cell.gripper_pose(A), s.retreat), "back off"),
+                           (self.park[A], "park")):
+            try:
+                self.cell.move(A, goal)
+            except Exception as exc:   # an open gripper that stops short holds nothing
+                figures[f"{A}_{what.replace(' ', '_')}"] = str(exc)
+        T_N = self._verify_hold(B, _translation(s.hold_check * self.normal)
+                                @ self.cell.gripper_pose(B), "hand-off")
+        self.G_TN = self._grasp_seen(B, T_N)
+        fit = grasp_parameters(self.G_TN, self.needle.radius)
+        figures.update(grasp_phi_deg=round(math.degrees(fit.params.phi), 2),
+                       planned_phi_deg=round(math.degrees(self.drive_choice.phi), 2),
+                       grasp_tilt_deg=round(math.degrees(fit.tilt), 2),
+                       grasp_offset_mm=round(fit.offset * 1e3, 3))
+        return figures
+
+    def _step_nd(self) -> dict[str, Any]:
+        B = self.driver
+        assert B is not None and self.drive is not None and self.geometry is not None
+        T_N = self._converged("drive")
+        drive, choice = self._drive_on(B, T_N)
+        approach = self._approach(drive, B)
+        T0 = self.cell.gripper_pose(B)
+        self._move(B, approach, "drive approach")
+        # look again just before entering: the grasp may have slipped on the way
+        tr = self._look(self.cell.gripper_pose(B) @ invert(T0))
+        approach_look = tr.converged
+        if tr.converged:
+            drive, choice = self._drive_on(B, tr.pose)
+        # else: the gripper may hide the needle here; the grasp seen before the approach
+        # moved rigidly with the jaws, so the drive keeps it
+        T_app = self.cell.gripper_pose(B)
+        for k, T in enumerate(drive.G_PT):
+            self._move(B, T, f"drive pose {k + 1} of {len(drive.G_PT)}")
+        self.in_tissue = True
+        if hasattr(self.tracker, "set_occluder"):
+            self.tracker.set_occluder(self._tissue_plane())
+        tr = self._look(self.cell.gripper_pose(B) @ invert(T_app))
+        tip_plan = drive.G_PS @ drive.G_SN[-1]
+        tip_plan = tip_plan[:3, :3] @ self.needle.tip + tip_plan[:3, 3]
+        tip_seen = tr.pose[:3, :3] @ self.needle.tip + tr.pose[:3, 3]
+        return {"grasp_phi_deg": round(math.degrees(choice.phi), 2),
+                "min_tip_clearance_mm": round(choice.min_tip_clearance * 1e3, 2),
+                "tip_seen_from_plan_mm": round(float(np.linalg.norm(tip_seen - tip_plan))
+                                               * 1e3, 3),
+                "approach_look_converged": approach_look,
+                "tracked_after_drive": tr.converged}
+
+    def _drive_on(self, arm: str, T_N: np.ndarray) -> tuple[Drive, GraspChoice]:
+        """The drive on the grasp the tracker sees, checked (eq. 3); refused when that grasp
+        or a pose of its drive is not fit."""
+        assert self.drive is not None
+        G_TN = self._grasp_seen(arm, T_N)
+        try:
+            choice = check_drive_grasp(self.needle, self.drive, G_TN, self.s.drive_grasp)
+        except NeedleError as exc:
+            raise _refuse("grasp_unfit", f"drive: {exc}") from None
+        drive = self.drive.with_grasp(G_TN)
+        assert drive.G_PT is not None
+        ok, why = self._reach(arm, list(drive.G_PT))
+        if not ok:
+            raise _refuse("out_of_reach", f"drive: {arm!r} cannot follow the drive with the "
+                                          f"grasp it holds ({why})")
+        self.G_TN = G_TN
+        return drive, choice
+
+    def _approach(self, drive: Drive, arm: str) -> np.ndarray:
+        """The drive's approach pose, along the gripper (seed 002) or else along the
+        needle tip's tangent."""
+        last = ""
+        for along in ("gripper", "tangent"):
+            try:
+                T = drive.approach_pose(self.s.approach, along=along)
+            except NeedleError as exc:
+                last = str(exc)
+                continue
+            ok, why = self.cell.reachable(arm, T)
+            if ok:
+                return T
+            last = why
+        raise _refuse("out_of_reach", f"drive: no approach pose for {arm!r} ({last})")
+
+    def _tissue_plane(self) -> Any:
+        from oralnav.control.needle_tracker import TissuePlane
+        return TissuePlane(self.incision.mean(axis=0), self.normal)
+
+    def _step_nr(self) -> dict[str, Any]:
+        s = self.s
+        B = self.driver
+        assert B is not None
+        self.cell.open(B)
+        self.holder = None
+        try:
+            self.cell.move(B, _back_off(self.cell.gripper_pose(B), s.retreat))
+        except Exception as exc:
+            raise _StepFailed("move_stopped", f"regrasp: the released gripper could not back "
+                                              f"off ({exc})") from None
+        T_N = self._converged("regrasp")
+        phi_lo, phi_hi, out_mm = self._tip_part(T_N)
+        if phi_hi < phi_lo:
+            raise _refuse("no_grasp", f"regrasp: the tip stands {out_mm:.1f} mm out of the "
+                                      f"tissue, too little to grasp")
+        phi = 0.5 * (phi_lo + phi_hi)
+        point = self.incision.mean(axis=0)
+        assert self.G_CS is not None
+        order = [B] + [a for a in self.arms if a != B]
+        last = ""
+        for arm in order:
+            for g in surface_grasps(self.needle, T_N, phi, point, self.normal, s.regrasp):
+                ok, why = self._reach(arm, [g.T_ref_T, _back_off(g.T_ref_T, s.approach)])
+                if ok:
+                    try:
+                        pull = pull_poses(np.eye(4), self.G_CS, T_N, g.G_TN, self.needle,
+                                          s.pull_poses, s.swage_clearance, s.pull_lift)
+                    except NeedleError as exc:
+                        raise _refuse("bad_pull", f"regrasp: {exc}") from None
+                    ok, why = self._reach(arm, list(pull.G_PT))
+                if ok:
+                    return self._regrasp(arm, g, pull, phi, out_mm)
+                last = f"{arm}: {why}"
+        raise _refuse("out_of_reach", f"regrasp: no arm reaches a grasp of the tip that it "
+                                      f"can pull with ({last})")
+
+    def _tip_part(self, T_N: np.ndarray) -> tuple[float, float, float]:
+        """The tip part out of the tissue at tracked pose ``T_N``: the grasp may go from
+        ``phi_lo`` to ``phi_hi`` (rad; empty when ``hi < lo``); and how far the tip stands
+        out along the arc (mm)."""
+        s = self.s
+        r, arc = self.needle.radius, self.needle.arc
+        phis = np.linspace(0.0, arc, 721)
+        pts = self.needle.point(phis) @ T_N[:3, :3].T + T_N[:3, 3]
+        height = (pts - self.incision.mean(axis=0)) @ self.normal
+        under = np.nonzero(height < 0.0)[0]
+        cross = phis[under[-1]] if under.size else 0.0
+        return (cross + s.regrasp_exit_margin / r, arc - s.regrasp_tip_margin / r,
+                (arc - cross) * r * 1e3)
+
+    def _regrasp(self, arm: str, g: SurfaceGrasp, pull: Any, phi: float,
+                 out_mm: float) -> dict[str, Any]:
+        s = self.s
+        self._move(arm, _back_off(g.T_ref_T, s.approach), "regrasp approach")
+        self._move(arm, g.T_ref_T, "regrasp reach")
+        self.cell.close(arm)
+        # the check motion: the pull's first few degrees (a held needle turns along its
+        # own track, so the check costs the tissue nothing)
+        k = int(np.searchsorted(pull.betas[:pull.n_turn], s.regrasp_turn_check))
+        k = min(max(k, 1), pull.n_turn - 1)
+        for T in pull.G_PT[:k]:
+            self._move(arm, T, "regrasp check turn")
+        T_N = self._verify_hold(arm, pull.G_PT[k], "regrasp")
+        self.holder, self.G_TN = arm, self._grasp_seen(arm, T_N)
+        return {"arm": arm, "grasp_phi_deg": round(math.degrees(phi), 2),
+                "tip_out_mm": round(out_mm, 2),
+                "shaft_elevation_deg": round(math.degrees(g.elevation), 1)}
+
+    def _step_np(self) -> dict[str, Any]:
+        s = self.s
+        arm = self.holder
+        assert arm is not None and self.G_CS is not None
+        T_N = self._converged("pull")
+        G_TN = self._grasp_seen(arm, T_N)
+        try:
+            pull = pull_poses(np.eye(4), self.G_CS, T_N, G_TN, self.needle, s.pull_poses,
+                              s.swage_clearance, s.pull_lift)
+        except NeedleError as exc:
+            raise _refuse("bad_pull", f"pull: {exc}") from None
+        ok, why = self._reach(arm, list(pull.G_PT))
+        if not ok:
+            raise _refuse("out_of_reach", f"pull: {arm!r} cannot follow the pull ({why})")
+        T0 = self.cell.gripper_pose(arm)
+        for k, T in enumerate(pull.G_PT):
+            self._move(arm, T, f"pull pose {k + 1} of {len(pull.G_PT)}")
+        tr = self._look(self.cell.gripper_pose(arm) @ invert(T0))
+        lowest = float(((self.needle.points(64) @ tr.pose[:3, :3].T + tr.pose[:3, 3]
+                         - self.incision.mean(axis=0)) @ self.normal).min())
+        if not tr.converged:
+            raise _StepFailed("lost_track", f"pull: the tracker lost the needle after the "
+                                            f"pull ({tr.reason})")
+        if lowest < 0.0:
+            raise _StepFailed("still_in_tissue", f"pull: the tracked needle is still "
+                                                 f"{-lowest * 1e3:.2f} mm in the tissue")
+        self.in_tissue = False
+        return {"turn_deg": round(math.degrees(float(pull.betas[-1])), 1),
+                "lowest_point_mm": round(lowest * 1e3, 2)}
+
+    # -- truth ----------------------------------------------------------------------------
+    def _check_truth(self, res: StepResult) -> None:
+        """Fill ``res.truth_ok`` from the cell's ground truth, when it has one."""
+        truth_fn = getattr(self.cell, "truth", None)
+        if truth_fn is None:
+            return
+        t = truth_fn()
+        if self.track is not None:
+            e_pos, e_ang = _pose_error(self.track.pose, t.T_ref_needle)
+            res.figures["track_error_mm"] = round(e_pos, 3)
+            res.figures["track_error_deg"] = round(e_ang, 2)
+        held = set(t.held_by)
+        step = res.step
+        if step == "NG":
+            ok = self.picker is not None and self.picker in held
+            why = f"held by {sorted(held)}"
+        elif step == "NH":
+            ok = self.driver is not None and held == {self.driver}
+            why = f"held by {sorted(held)}"
+        elif step == "ND":
+            ok, why = self._placement_truth(t)
+        elif step == "NR":
+            arm = self.holder
+            ok = arm is not None and arm in held and t.in_tissue
+            why = f"held by {sorted(held)}, in tissue {t.in_tissue}"
+        else:
+            ok = t.out_of_tissue_after_pull and bool(held)
+            why = f"out of the tissue {t.out_of_tissue_after_pull}, held by {sorted(held)}"
+        res.truth_ok = bool(ok and res.ok)
+        res.truth_detail = why
+
+    def _placement_truth(self, t: Any) -> tuple[bool, str]:
+        """ND against truth: the tip went in and came out within the placement tolerance
+        of the planned entry and exit."""
+        if self.geometry is None or t.entry is None or t.exit is None:
+            return False, (f"entry {'none' if t.entry is None else 'made'}, exit "
+                           f"{'none' if t.exit is None else 'made'}")
+        e_in = float(np.linalg.norm(t.entry - self._to_ref(self.geometry.entry)))
+        e_out = float(np.linalg.norm(t.exit - self._to_ref(self.geometry.exit)))
+        tol = self.s.placement_tolerance
+        return (e_in <= tol and e_out <= tol,
+                f"entry {e_in * 1e3:.2f} mm, exit {e_out * 1e3:.2f} mm from the plan "
+                f"(tolerance {tol * 1e3:.1f} mm)")
+
+
+def step_rates(outcomes: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Table I/II figures from per-trial outcomes (``{"steps": {step: truth_ok or None}}``):
+    overall rates (a step not reached counts as failed) and individual rates (of the
+    trials that reached the step)."""
+    n = len(outcomes)
+    overall, individual = {}, {}
+    for st in STEPS:
+        ok = sum(1 for o in outcomes if o["steps"].get(st) is True)
+        reached = sum(1 for o in outcomes if o["steps"].get(st) is not None)
+        overall[st] = ok / n if n else 0.0
+        individual[st] = ok / reached if reached else None
+    done = sum(1 for o in outcomes if all(o["steps"].get(st) is True for st in STEPS))
+    return {"trials": n, "overall": done / n if n else 0.0, "steps": overall,
+            "individual": individual}
