@@ -6,10 +6,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from . import calibration, control, navigation, planning, render
+from . import calibration, control, navigation, needle, planning, render
 
 BENCHES = {"render": render.main, "navigation": navigation.main, "control": control.main,
-           "calibration": calibration.main, "planning": planning.main}
+           "calibration": calibration.main, "planning": planning.main, "needle": needle.main}
 
 
 def main() -> int:

@@ -61,6 +61,7 @@ MIN_NORMAL_NORM = 1e-6
 MAX_PATH_CHARS = 4096
 
 ProcedureAction = Literal["start", "pause", "resume", "abort"]
+NeedleStep = Literal["NG", "NH", "ND", "NR", "NP"]
 _Vec3 = tuple[Float, Float, Float]
 
 
@@ -149,6 +150,14 @@ class GuidePlanBody(_Body):
         return v
 
 
+class NeedleCellBody(_Body):
+    """``POST /needle/cell``: load simulated needle trial ``trial`` (a seed) with imaging
+    nuisances scaled by ``difficulty`` (0..1)."""
+
+    trial: Annotated[int, Field(ge=0, le=2**32 - 1, strict=True)]
+    difficulty: Annotated[float, Field(ge=0.0, le=1.0)] = 1.0
+
+
 # -- what the daemon core provides -----------------------------------------------------
 class Operations(Protocol):
     """What the API needs from the daemon core. Called on the event loop; none may block.
@@ -177,6 +186,11 @@ class Operations(Protocol):
     def start_guide(self, who: str) -> None: ...   # StateError when not allowed
     def stop_guide(self, who: str) -> None: ...    # never refused
     def guide(self) -> dict[str, Any]: ...         # JSON-able plan summary and live status
+    # needle procedure (docs/needle.md "Procedure"); needle_cell and needle_step block
+    # (render, track, move: worker thread); StateError -> 409 (refused, out of turn, busy)
+    def needle(self) -> dict[str, Any]: ...
+    def needle_cell(self, trial: int, difficulty: float, who: str) -> dict[str, Any]: ...
+    def needle_step(self, step: str, who: str) -> dict[str, Any]: ...
 
 
 # -- helpers -----------------------------------------------------------------------------
@@ -447,6 +461,24 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
     @app.post("/guide/stop", summary="End guidance (HOLD) and clear the plan")
     async def post_guide_stop(request: Request, who: Operator) -> JSONResponse:
         return await command(request, who, "guide stop", lambda: ops.stop_guide(who.name))
+
+    @app.get("/needle", summary="The needle cell, the procedure's next step and results")
+    async def get_needle(_: Observer) -> JSONResponse:
+        return read(ops.needle)
+
+    @app.post("/needle/cell", summary="Load a simulated needle trial cell (a fresh procedure)")
+    async def post_needle_cell(request: Request, who: Operator,
+                               body: NeedleCellBody) -> JSONResponse:
+        return await command(request, who, "needle cell",
+                             lambda: ops.needle_cell(body.trial, body.difficulty, who.name),
+                             in_thread=True)
+
+    @app.post("/needle/{step}", summary="Run needle step NG, NH, ND, NR or NP (409 when "
+                                        "refused before moving or out of turn)")
+    async def post_needle_step(request: Request, who: Operator,
+                               step: NeedleStep) -> JSONResponse:
+        return await command(request, who, f"needle {step}",
+                             lambda: ops.needle_step(step, who.name), in_thread=True)
 
     @app.websocket("/telemetry")
     async def telemetry(ws: WebSocket) -> None:

@@ -43,6 +43,7 @@ from .api import ProcedureAction, SutureTarget, jsonable
 from .control_loop import HIST_BIN_S
 from .control_process import ControlPort
 from .guidance import GuideDraft, GuidePlanError, model_frame, plan_insertion
+from .needle_session import NeedleSession
 from .plan_channel import ChannelError
 from .shm import decode_reason
 
@@ -95,6 +96,7 @@ class DaemonCore:
         self._guide_end: dict[str, Any] | None = None   # why the last insertion ended
         self._guide_clear = False           # the loop still holds a plan to remove
         self.supervisor.stop.add_handler(self._stop_guide, name="guidance")
+        self.needle_session = NeedleSession(self._needle_refused)
 
     # -- the latched stop's handler (sync, never blocks) ---------------------------------
     def _stop_robot(self, record: Any) -> None:
@@ -342,6 +344,26 @@ class DaemonCore:
         log.info("insertion planned by %s from %s: d_T %.1f mm, theta_T %.1f deg", who,
                  scene, p.d_T * 1e3, math.degrees(p.theta_T))
         return draft.summary()
+
+    # -- needle procedure (simulated cell) ----------------------------------------------
+    def _needle_refused(self) -> str:
+        """Why a needle step may not move now ("" when it may): never with a latched stop
+        or during a guided insertion."""
+        sup = self.supervisor
+        if sup.state in LATCHED or sup.stop.latched:
+            return f"the safety state is {sup.state.value}: reset first"
+        if self._guide_phase != "idle":
+            return "a guided insertion is running"
+        return ""
+
+    def needle(self) -> dict[str, Any]:
+        return jsonable(self.needle_session.status())
+
+    def needle_cell(self, trial: int, difficulty: float, who: str) -> dict[str, Any]:
+        return jsonable(self.needle_session.load_trial(trial, difficulty, who))
+
+    def needle_step(self, step: str, who: str) -> dict[str, Any]:
+        return jsonable(self.needle_session.run_step(step, who))
 
     def _refuse_while_guiding(self, what: str) -> None:
         with self._glock:

@@ -360,6 +360,7 @@ class NeedleProcedure:
         self._depth_range = (max(z_ref - s.depth_window, 0.01), z_ref + s.depth_window)
         # state
         self.results: dict[str, StepResult] = {}
+        self.refusals: list[StepResult] = []
         self.track: NeedleTrack | None = None
         self.G_CS: np.ndarray | None = None
         self.geometry: SutureGeometry | None = None
@@ -386,7 +387,8 @@ class NeedleProcedure:
     def run(self, step: str) -> StepResult:
         """Run ``step`` (one of :data:`STEPS`, in order). Raises :class:`StateError` for a
         step out of turn or after a failure; otherwise returns the result, refusals and
-        failures included."""
+        failures included. A refused step is not done: it may be asked again
+        (:attr:`refusals` keeps the refusals); a failed one ends the procedure."""
         step = step.upper()
         if step not in STEPS:
             raise StateError(f"unknown needle step {step!r}; the steps are {list(STEPS)}")
@@ -407,14 +409,22 @@ class NeedleProcedure:
             res.cause, res.detail, res.refused = exc.cause, exc.detail, exc.refused
         res.seconds = round(time.perf_counter() - t0, 3)
         self._check_truth(res)
-        self.results[step] = res
+        if res.refused:
+            # nothing moved toward the needle: the step may be asked again (after the
+            # operator fixed the cause, or the tracker had more frames)
+            self.refusals.append(res)
+        else:
+            self.results[step] = res
         return res
 
     def run_all(self) -> list[StepResult]:
-        """Run the steps in order until one fails; the results of those that ran."""
+        """Run the steps in order until one fails or refuses; the results of those that
+        ran."""
         out = []
         while (st := self.next_step) is not None:
             out.append(self.run(st))
+            if not out[-1].ok:
+                break
         return out
 
     def status(self) -> dict[str, Any]:
@@ -423,6 +433,7 @@ class NeedleProcedure:
         return {"next": self.next_step, "arms": {"picker": self.picker, "driver": self.driver,
                                                  "holder": self.holder},
                 "results": {k: r.to_json() for k, r in self.results.items()},
+                "last_refusal": self.refusals[-1].to_json() if self.refusals else None,
                 "track": None if tr is None else {
                     "converged": tr.converged, "reason": tr.reason,
                     "T_ref_N": tr.pose.tolist(), "swage": round(tr.swage, 2)}}

@@ -119,9 +119,32 @@ class FakeOps:
         return {"phase": "active" if self.guiding else "idle", "plan": self.plan,
                 "rod_distance_m": float("nan")}
 
+    # needle procedure: a cell must be loaded; steps in order; "NR" is always refused
+    needle_trial: int | None = None
+    needle_done: list[str] = []
+
+    def needle(self) -> dict[str, Any]:
+        return {"cell": self.needle_trial, "done": list(self.needle_done)}
+
+    def needle_cell(self, trial: int, difficulty: float, who: str) -> dict[str, Any]:
+        self.plan_thread = threading.current_thread()
+        self.calls.append(("needle_cell", trial, difficulty, who))
+        self.needle_trial, self.needle_done = trial, []
+        return self.needle()
+
+    def needle_step(self, step: str, who: str) -> dict[str, Any]:
+        if self.needle_trial is None:
+            raise StateError("no needle cell: POST /needle/cell first")
+        if step == "NR":
+            raise StateError("needle step NR refused: the needle tracker has not converged")
+        self.calls.append(("needle_step", step, who))
+        self.needle_done.append(step)
+        return {"result": {"step": step, "ok": True}, "next": None}
+
 
 POSTS = ["/estop", "/reset", "/procedure/start", "/procedure/pause", "/procedure/resume",
-         "/procedure/abort", "/targets", "/guide/plan", "/guide/start", "/guide/stop"]
+         "/procedure/abort", "/targets", "/guide/plan", "/guide/start", "/guide/stop",
+         "/needle/cell", "/needle/NG"]
 GOOD_TARGETS = {"targets": [{"name": "s1", "p_OM": [0.01, 0.02, 0.0]},
                             {"name": "s2", "p_OM": [0.0, -0.01, 0.005], "n_OM": [0, 0, 2]}]}
 EYE4 = np.eye(4).tolist()
@@ -161,7 +184,8 @@ def audit_lines(rig) -> list[dict]:
 
 
 def body_for(path: str) -> dict | None:
-    return {"/targets": GOOD_TARGETS, "/guide/plan": GOOD_PLAN}.get(path)
+    return {"/targets": GOOD_TARGETS, "/guide/plan": GOOD_PLAN,
+            "/needle/cell": {"trial": 3}}.get(path)
 
 
 # -- roles -------------------------------------------------------------------------------
@@ -171,7 +195,7 @@ async def test_health_needs_no_token(client):
     assert r.status_code == 200 and r.json()["ok"] is True
 
 
-@pytest.mark.parametrize("path", ["/status", "/poses", "/targets", "/guide"])
+@pytest.mark.parametrize("path", ["/status", "/poses", "/targets", "/guide", "/needle"])
 async def test_reads_need_a_valid_token(client, rig, path):
     """issue 4 REST: GETs answer 401 with WWW-Authenticate: Bearer without a token or with
     an unknown one, and 200 for an observer."""
@@ -198,7 +222,7 @@ def test_every_post_route_is_covered(rig):
     """issue 4 REST: the role tests below cover every POST route the app has."""
     posts = {r.path for r in rig.app.routes if "POST" in getattr(r, "methods", ())}
     assert posts == {"/estop", "/reset", "/procedure/{action}", "/targets", "/guide/plan",
-                     "/guide/start", "/guide/stop"}
+                     "/guide/start", "/guide/stop", "/needle/cell", "/needle/{step}"}
 
 
 @pytest.mark.parametrize("path", POSTS)
@@ -709,3 +733,31 @@ def test_api_section_binds_loopback_unless_allowed(tmp_path, api, where):
     with pytest.raises(ConfigError) as ei:
         validate(ApiSection, api, path, "api")
     assert str(ei.value).startswith(f"{path}: {where}"), str(ei.value)
+
+
+# -- needle procedure --------------------------------------------------------------------
+async def test_needle_cell_and_steps_over_rest(client, rig):
+    """issue 7, item 7: POST /needle/cell loads a cell (in a worker thread), POST
+    /needle/{step} runs a step and answers its result, GET /needle reads the state; a
+    refused step is 409 with the core's reason; a step name that is not one of the five
+    is 422 and reaches nothing; every command is audited."""
+    r = await client.post("/needle/NG", headers=rig.op)
+    assert r.status_code == 409 and "POST /needle/cell" in r.json()["detail"]
+    r = await client.post("/needle/cell", headers=rig.op, json={"trial": 7, "difficulty": 0.5})
+    assert r.status_code == 200, r.text
+    assert rig.ops.plan_thread is not threading.main_thread()
+    r = await client.post("/needle/NG", headers=rig.op)
+    assert r.status_code == 200 and r.json()["result"] == {"step": "NG", "ok": True}
+    r = await client.post("/needle/NR", headers=rig.op)
+    assert r.status_code == 409 and "not converged" in r.json()["detail"]
+    for bad in ("/needle/ng", "/needle/XX"):
+        assert (await client.post(bad, headers=rig.op)).status_code == 422
+    for body in ({"trial": -1}, {"trial": "3"}, {"trial": 1, "difficulty": 2.0},
+                 {"trial": 1, "extra": 0}):
+        r = await client.post("/needle/cell", headers=rig.op, json=body)
+        assert r.status_code == 422, body
+    assert (await client.get("/needle", headers=rig.obs)).json() == {"cell": 7, "done": ["NG"]}
+    assert rig.ops.calls == [("needle_cell", 7, 0.5, "operator"),
+                             ("needle_step", "NG", "operator")]
+    statuses = [(x["path"], x["status"]) for x in audit_lines(rig)]
+    assert ("/needle/NR", 409) in statuses and ("/needle/XX", 422) in statuses

@@ -145,3 +145,32 @@ async def test_loop_latch_stale_pose_and_estop_input_become_faults(rig) -> None:
     assert core.supervisor.state.value == "ESTOP"
     r = await client.post("/reset", headers=_auth(clear, "operator"))
     assert r.status_code == 409 and "e-stop" in r.json()["detail"]
+
+
+async def test_needle_steps_over_rest_on_the_core(rig) -> None:
+    """issue 7, item 7: the needle steps are daemon states callable over REST: without a
+    cell a step is 409; NG runs on a loaded simulated trial and answers its result with
+    the truth check; a step out of turn is 409; with the e-stop latched a step is 409 and
+    nothing moves."""
+    core, client, clear, _, _ = rig
+    op = _auth(clear, "operator")
+    r = await client.post("/needle/NG", headers=op)
+    assert r.status_code == 409 and "POST /needle/cell" in r.json()["detail"]
+    r = await client.post("/needle/cell", headers=op, json={"trial": 0})
+    assert r.status_code == 200, r.text
+    assert r.json()["procedure"]["next"] == "NG"
+    r = await client.post("/needle/ND", headers=op)
+    assert r.status_code == 409 and "NG comes first" in r.json()["detail"]
+    r = await client.post("/needle/NG", headers=op)
+    assert r.status_code == 200, r.text
+    res = r.json()["result"]
+    assert res["ok"] and res["truth_ok"] and r.json()["next"] == "NH"
+    cell = core.needle_session._proc.cell
+    assert (await client.post("/estop", headers=op, json={"reason": "drill"})).status_code == 200
+    before = cell.truth().T_ref_needle
+    r = await client.post("/needle/NH", headers=op)
+    assert r.status_code == 409 and "ESTOP" in r.json()["detail"]
+    assert np.array_equal(cell.truth().T_ref_needle, before)
+    doc = (await client.get("/needle", headers=_auth(clear, "observer"))).json()
+    assert doc["cell"]["trial"] == 0 and doc["procedure"]["next"] == "NH"
+    assert doc["procedure"]["results"]["NG"]["ok"] is True

@@ -1,0 +1,150 @@
+"""Needle driving Monte Carlo (issue 7; seed 002 §IV, Tables I and II): the whole procedure
+(NG, NH, ND, NR, NP) on randomised simulated trial cells, each step checked against the
+simulator's truth, every failure classified by its cause.
+
+    oralnav bench needle --trials N --seed S --out DIR [--json] [--workers W]
+    python -m bench needle [--quick]
+
+Each trial is :func:`oralnav.sim.needle_trials.trial_cell` (seed ``S + k``): a stereo
+endoscope, a tilted tissue pad with a drawn incision, a threaded CT-1 needle lying at
+random on the pad, two parked grippers on RCM arms, random lighting, blur and noise. The
+procedure is :class:`oralnav.daemon.needle_procedure.NeedleProcedure` with its default
+settings (suture depth 5 mm at the incision's middle); it gets the incision, the tissue
+normal and the pad's outline, as the seed's vision does. A step counts as a success only
+if the procedure saw it succeed and the truth agrees; the steps after a failed one are
+not run and count as failed (the paper's rule).
+
+Failures are classified by the first failed step and its cause: a refusal before moving
+(``refused_*``: the tracker had not converged, nothing reachable, ...), a failure the
+procedure saw (``grasp_missed``, ``lost_track``, ``move_stopped``, ...), or
+``undetected``: the procedure believed the step done and the truth says otherwise (the
+dangerous kind).
+
+Writes ``needle.json``: ``{"trials", "overall", "steps": {step: overall rate}}`` (Table
+II's first row, as the issue asks), the individual rates (Table II's second row), the
+failure classes with their trials, the seed's figures for comparison, and one record per
+trial.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+import time
+from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: Seed 002 §IV.C, 20 trials on the dVRK: overall (Table II's first row) and individual
+#: success (second row) per step.
+PAPER = {"trials": 20, "overall": 0.70,
+         "steps": {"NG": 0.95, "NH": 0.90, "ND": 0.90, "NR": 0.70, "NP": 0.70},
+         "individual": {"NG": 19 / 20, "NH": 18 / 19, "ND": 18 / 18, "NR": 14 / 18,
+                        "NP": 14 / 14}}
+
+
+def run_trial(seed: int) -> dict[str, Any]:
+    """One trial: the procedure on ``trial_cell(seed)``; its record (JSON-able)."""
+    from oralnav.daemon.needle_procedure import STEPS, NeedleProcedure
+    from oralnav.sim.needle_trials import trial_cell
+
+    t0 = time.perf_counter()
+    cell, info = trial_cell(seed)
+    proc = NeedleProcedure(cell, info.incision, info.surface_normal,
+                           surface_outline=info.surface_outline)
+    results = proc.run_all()
+    steps: dict[str, bool | None] = dict.fromkeys(STEPS)
+    failure = None
+    for r in results:
+        steps[r.step] = bool(r.ok and r.truth_ok)
+        if failure is None and not steps[r.step]:
+            cause = r.cause if not r.ok else "undetected"
+            failure = {"step": r.step, "cause": cause,
+                       "detail": r.detail if not r.ok else r.truth_detail,
+                       "truth": r.truth_detail}
+    return {"seed": seed, "steps": steps, "failure": failure,
+            "seconds": round(time.perf_counter() - t0, 2),
+            "results": [r.to_json() for r in results]}
+
+
+def classify(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Failure classes ``(step, cause)``, most frequent first, with their trials' seeds."""
+    seen: dict[tuple[str, str], list[int]] = {}
+    for rec in records:
+        f = rec["failure"]
+        if f is not None:
+            seen.setdefault((f["step"], f["cause"]), []).append(rec["seed"])
+    return [{"step": st, "cause": c, "count": len(s), "seeds": s,
+             "example": next(r["failure"]["detail"] for r in records
+                             if r["seed"] == s[0])}
+            for (st, c), s in sorted(seen.items(), key=lambda kv: -len(kv[1]))]
+
+
+def run(trials: int, seed: int, workers: int | None = None,
+        progress: bool = True) -> dict[str, Any]:
+    """The Monte Carlo over ``trials`` seeds from ``seed``; the summary document."""
+    from oralnav.daemon.needle_procedure import step_rates
+
+    if trials < 1:
+        raise ValueError(f"needle bench: trials must be >= 1, got {trials}")
+    workers = max(1, min(workers or os.cpu_count() or 1, trials))
+    seeds = list(range(seed, seed + trials))
+    t0 = time.perf_counter()
+    records: list[dict[str, Any]] = []
+    if workers == 1:
+        it = map(run_trial, seeds)
+        pool = None
+    else:
+        pool = ProcessPoolExecutor(max_workers=workers)
+        it = pool.map(run_trial, seeds)
+    try:
+        for rec in it:
+            records.append(rec)
+            if progress:
+                ok = all(rec["steps"].values())
+                f = rec["failure"]
+                print(f"needle: trial {rec['seed']} ({len(records)}/{trials}) "
+                      f"{'ok' if ok else f['step'] + ' ' + f['cause']} "
+                      f"{rec['seconds']:.1f} s", file=sys.stderr, flush=True)
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    rates = step_rates(records)
+    causes = Counter(r["failure"]["cause"] for r in records if r["failure"])
+    return {"bench": "needle", "trials": rates["trials"], "overall": rates["overall"],
+            "steps": rates["steps"], "individual": rates["individual"],
+            "failures": classify(records), "failure_causes": dict(causes),
+            "paper": PAPER, "target_overall": 0.90, "seed": seed,
+            "seconds": round(time.perf_counter() - t0, 1),
+            "trial_seconds_median": round(float(np.median([r["seconds"] for r in records])), 2),
+            "machine": {"cpus": os.cpu_count(), "workers": workers,
+                        "python": platform.python_version()},
+            "records": records}
+
+
+def summary(doc: dict[str, Any]) -> dict[str, Any]:
+    """The issue's JSON: ``{"trials", "overall", "steps"}``."""
+    return {"trials": doc["trials"], "overall": doc["overall"], "steps": doc["steps"]}
+
+
+def main(out: Path, quick: bool = False, trials: int | None = None, seed: int = 0,
+         workers: int | None = None) -> dict[str, Any]:
+    """Run the Monte Carlo (``quick``: 10 trials, else 200 unless ``trials`` is given) and
+    write ``needle.json`` into ``out``."""
+    n = trials if trials is not None else (10 if quick else 200)
+    doc = run(n, seed, workers)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "needle.json").write_text(json.dumps(doc, indent=1) + "\n")
+    print(f"needle: {doc['trials']} trials, overall {100 * doc['overall']:.1f} % "
+          f"(seed 002: {100 * PAPER['overall']:.0f} % of {PAPER['trials']}); per step "
+          + ", ".join(f"{k} {100 * v:.1f} %" for k, v in doc["steps"].items()),
+          file=sys.stderr)
+    for f in doc["failures"]:
+        print(f"  {f['count']:4d} x {f['step']} {f['cause']}: {f['example'][:120]}",
+              file=sys.stderr)
+    return doc

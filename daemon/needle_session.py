@@ -1,0 +1,89 @@
+"""The needle procedure as the daemon runs it over REST (issue 7, item 7): one simulated
+needle cell at a time, its five steps called one by one (``POST /needle/{step}``), the
+state and results read back (``GET /needle``).
+
+The cell is the simulator's randomised trial cell (``POST /needle/cell``): no needle
+hardware exists to drive yet, and the cell's ground truth gives each step its success
+check. Steps block (they render, track and move for a second or more): the API runs them
+in a worker thread, and one runs at a time. A step refused before moving, a step out of
+turn, a step while the safety state forbids motion, and a second step while one runs are
+:class:`~oralnav.safety.errors.StateError` (409) and change nothing; a step that ran
+answers its result, failed or not.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from oralnav.safety.errors import StateError
+
+from .needle_procedure import NeedleProcedure, ProcedureSettings
+
+log = logging.getLogger(__name__)
+
+
+class NeedleSession:
+    """See the module docstring. ``motion_refused()`` returns why motion is not allowed
+    now (``""`` when it is): the core's safety state."""
+
+    def __init__(self, motion_refused: Callable[[], str],
+                 settings: ProcedureSettings | None = None) -> None:
+        self._refused = motion_refused
+        self._settings = settings or ProcedureSettings()
+        self._lock = threading.Lock()        # one load or step at a time
+        self._proc: NeedleProcedure | None = None
+        self._cell_info: dict[str, Any] | None = None
+        self._busy: str | None = None
+
+    def load_trial(self, trial: int, difficulty: float, who: str) -> dict[str, Any]:
+        """Replace the cell by simulated trial ``trial`` (a fresh procedure at NG)."""
+        from oralnav.sim.needle_trials import trial_cell
+
+        if not (0.0 <= difficulty <= 1.0 and math.isfinite(difficulty)):
+            raise ValueError(f"difficulty must be in [0, 1], got {difficulty}")
+        if not self._lock.acquire(blocking=False):
+            raise StateError(f"cannot load a cell while needle step {self._busy} runs")
+        try:
+            cell, info = trial_cell(int(trial), difficulty=float(difficulty))
+            proc = NeedleProcedure(cell, info.incision, info.surface_normal, self._settings,
+                                   surface_outline=info.surface_outline)
+            self._proc = proc
+            self._cell_info = {"trial": int(trial), "difficulty": float(difficulty),
+                               "loaded_by": who, "incision": info.incision.tolist(),
+                               "surface_normal": info.surface_normal.tolist()}
+        finally:
+            self._lock.release()
+        log.info("needle cell: trial %d (difficulty %.2f) loaded by %s", trial, difficulty, who)
+        return self.status()
+
+    def run_step(self, step: str, who: str) -> dict[str, Any]:
+        """Run one step; its result. StateError (nothing changed) when refused."""
+        why = self._refused()
+        if why:
+            raise StateError(f"needle step {step} refused: {why}")
+        if not self._lock.acquire(blocking=False):
+            raise StateError(f"needle step {step} refused: step {self._busy} is running")
+        try:
+            proc = self._proc
+            if proc is None:
+                raise StateError("no needle cell: POST /needle/cell first")
+            self._busy = step
+            res = proc.run(step)              # StateError when out of turn
+        finally:
+            self._busy = None
+            self._lock.release()
+        log.info("needle step %s by %s: %s%s", res.step, who, "ok" if res.ok else res.cause,
+                 "" if res.truth_ok is None else f" (truth {res.truth_ok})")
+        if res.refused:
+            raise StateError(f"needle step {res.step} refused: {res.detail}")
+        return {"result": res.to_json(), "next": proc.next_step}
+
+    def status(self) -> dict[str, Any]:
+        """``GET /needle``: the cell, the running step, the procedure's state."""
+        proc = self._proc
+        return {"cell": self._cell_info, "running": self._busy,
+                "procedure": None if proc is None else proc.status()}
