@@ -11,7 +11,7 @@
     oralnav plan fpsm --mesh FILE --slices M --points N --out FPSM.json [--json]
     oralnav plan place --scene FILE [--figures DIR] [--json]
     oralnav bench navigation|control|calibration|planning [--quick] --out DIR
-    oralnav bench needle [--trials N] [--seed S] [--tracking] [--quick] --out DIR [--json]
+    oralnav bench needle [--trials N] [--seed S] [--workers W] [--quick] --out DIR [--json]
 
 Every ``--json`` prints exactly one JSON object on stdout; progress and logs go to stderr.
 Exit status: 0 done, 2 bad input (the message names the file and key), 1 anything else.
@@ -332,10 +332,6 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
         raise SystemExit(f"oralnav bench needle: --trials must be >= 1, got {args.trials}")
     doc = needle.main(Path(args.out), quick=args.quick, trials=args.trials, seed=args.seed,
                       workers=args.workers)
-    if args.tracking:
-        from oralnav.bench import needle_tracking
-
-        needle_tracking.main(Path(args.out), quick=args.quick, seed=args.seed)
     s = needle.summary(doc)
     _emit(args, s, f"{s['trials']} trials: overall {100 * s['overall']:.1f} %; "
                    + ", ".join(f"{k} {100 * v:.1f} %" for k, v in s["steps"].items())
@@ -437,9 +433,6 @@ def build_parser() -> argparse.ArgumentParser:
     nd.add_argument("--seed", type=int, default=0, help="first trial's seed (default 0)")
     nd.add_argument("--workers", type=int, default=None,
                     help="processes (default: one per CPU)")
-    nd.add_argument("--tracking", action="store_true",
-                    help="also chart tracking speed against accuracy (particles 100..10000) "
-                         "and where the tracker fails (about 15 min; 2 with --quick)")
     nd.add_argument("--quick", action="store_true", help="fewer trials")
     nd.add_argument("--out", required=True, help="folder for needle.json (and charts)")
     nd.add_argument("--json", action="store_true",
