@@ -337,14 +337,20 @@ def grasp_band(needle: Needle, settings: GraspSettings) -> tuple[float, float]:
     return lo, hi
 
 
+def _out_of_tissue_to(drive: Drive) -> float:
+    """The largest arc angle (rad) of a needle point still out of the tissue at the end
+    of ``drive``: the grasp point sits at circle angle ``alpha + phi``, and the tissue
+    begins at ``pi + alpha0``."""
+    return math.pi + drive.geometry.alpha0 - float(drive.alphas[-1])
+
+
 def grasp_candidates(needle: Needle, drive: Drive, settings: GraspSettings) -> np.ndarray:
     """Candidate parameters (k, 4) as ``theta0, w1, w2, w3`` rows: the settings' grid with
     ``w3 = phi`` over the grasp band cut to the part of the needle still out of the tissue
     at the end of the drive (a grasp beyond it would be dragged into the tissue)."""
     lo, hi = grasp_band(needle, settings)
     g = drive.geometry
-    # The grasp point sits at circle angle alpha + phi; the tissue begins at pi + alpha0.
-    out_to = math.pi + g.alpha0 - float(drive.alphas[-1])
+    out_to = _out_of_tissue_to(drive)
     if min(hi, out_to) < lo:
         raise NeedleError(
             f"grasp: the grasp band [{math.degrees(lo):.1f}, {math.degrees(hi):.1f}] deg "
@@ -388,8 +394,7 @@ def check_drive_grasp(needle: Needle, drive: Drive, G_TN: np.ndarray,
     fit = grasp_parameters(G_TN, needle.radius)
     phi = grasp_point_angle(G_TN, needle, fit.params.theta0)
     lo, hi = grasp_band(needle, s)
-    g = drive.geometry
-    out_to = math.pi + g.alpha0 - float(drive.alphas[-1])
+    out_to = _out_of_tissue_to(drive)
     if not lo - 1e-9 <= phi <= min(hi, out_to) + 1e-9:
         raise NeedleError(
             f"grasp: the jaws hold the needle at {math.degrees(phi):.1f} deg of arc, outside "

@@ -26,8 +26,9 @@ The steps (docs/needle.md, "Procedure"):
 - **ND**: the grasp the hand-off actually produced, seen by the tracker, is checked and
   the drive planned on it (eq. 3); approach, look again, then turn the needle about its
   centre from the entry to past the exit.
-- **NR**: release, back off, track the needle standing in the tissue (its hidden middle
-  known from the tissue plane), grasp the tip part that stands out of the exit.
+- **NR**: release, back off, track the needle standing in the tissue, grasp the tip part
+  that stands out of the exit. (The tracker does not yet know that the tissue hides the
+  needle's middle, so it rarely converges here: docs/needle.md.)
 - **NP**: turn the needle further along its own arc until the swage is out, then lift.
 
 Frames: the cell's reference frame (the endoscope's left channel, ``ref``) for
@@ -816,8 +817,6 @@ class NeedleProcedure:
         for k, T in enumerate(drive.G_PT):
             self._move(B, T, f"drive pose {k + 1} of {len(drive.G_PT)}")
         self.in_tissue = True
-        if hasattr(self.tracker, "set_occluder"):
-            self.tracker.set_occluder(self._tissue_plane())
         tr = self._look(self.cell.gripper_pose(B) @ invert(T_app))
         tip_plan = drive.G_PS @ drive.G_SN[-1]
         tip_plan = tip_plan[:3, :3] @ self.needle.tip + tip_plan[:3, 3]
@@ -862,10 +861,6 @@ class NeedleProcedure:
                 return T
             last = why
         raise _refuse("out_of_reach", f"drive: no approach pose for {arm!r} ({last})")
-
-    def _tissue_plane(self) -> Any:
-        from oralnav.control.needle_tracker import TissuePlane
-        return TissuePlane(self.incision.mean(axis=0), self.normal)
 
     def _step_nr(self) -> dict[str, Any]:
         s = self.s

@@ -14,7 +14,6 @@ answers its result, failed or not.
 from __future__ import annotations
 
 import logging
-import math
 import threading
 from collections.abc import Callable
 from typing import Any
@@ -40,11 +39,10 @@ class NeedleSession:
         self._busy: str | None = None
 
     def load_trial(self, trial: int, difficulty: float, who: str) -> dict[str, Any]:
-        """Replace the cell by simulated trial ``trial`` (a fresh procedure at NG)."""
+        """Replace the cell by simulated trial ``trial`` (a fresh procedure at NG). A bad
+        seed or difficulty is the trial's ``CellError`` (a ValueError: 422)."""
         from oralnav.sim.needle_trials import trial_cell
 
-        if not (0.0 <= difficulty <= 1.0 and math.isfinite(difficulty)):
-            raise ValueError(f"difficulty must be in [0, 1], got {difficulty}")
         if not self._lock.acquire(blocking=False):
             raise StateError(f"cannot load a cell while needle step {self._busy} runs")
         try:
