@@ -20,6 +20,11 @@ sample points that found the wire, and the pose covariance from the normal equat
 The needle's base/tip twin (:mod:`.needle_tracker`, *Symmetry*) is broken by the suture
 thread at the swage: :func:`swage_evidence` compares the ridge just beyond each end.
 
+A needle driven into tissue is partly hidden under its surface. :class:`TissuePlane` is
+that surface, a known occluder: sample points under it are neither searched nor counted
+as missing wire, and an end under it gives no end measurement (:meth:`PoseRefiner.refine`,
+``occluder``; the particle filter reads it too).
+
 Pure math on arrays; metres, radians, pixels. Poses are ``T_ref_N``.
 """
 
@@ -37,6 +42,65 @@ from .camera import CameraModel
 from .errors import NeedleError
 from .needle import Needle
 from .needle_features import NeedleFeatures
+
+
+@dataclass(frozen=True, eq=False)
+class TissuePlane:
+    """The tissue's surface, a plane that hides whatever lies under it (reference frame).
+
+    ``point`` (3,): a point of the surface (m); ``normal`` (3,): its normal out of the
+    tissue, toward the cameras (normalised here; any non-zero length is accepted). Both
+    are stored as read-only float arrays.
+
+    An arc sample point counts as *visible* when its centreline stands at least a wire
+    radius above the plane (:meth:`visible`): then the wire's whole cross-section is out,
+    so its crest and outline are the wire's. Nearer the surface the plane cuts the wire,
+    and what shows is a sliver whose crest is off the axis: neither evidence of the wire
+    nor a sign that it is missing. The cameras must be on the normal's side (checked by
+    the tracker's parts); a point above the plane is then never hidden by it (the
+    half-space above is convex). The plane is infinite: a needle past the tissue's edge
+    is still taken as hidden under it.
+    """
+
+    point: np.ndarray
+    normal: np.ndarray
+
+    def __post_init__(self) -> None:
+        p = np.array(self.point, dtype=float).reshape(-1)
+        n = np.array(self.normal, dtype=float).reshape(-1)
+        if p.shape != (3,) or n.shape != (3,):
+            raise NeedleError(f"tissue plane: point and normal must be 3-vectors, got shapes "
+                              f"{np.shape(self.point)} and {np.shape(self.normal)}")
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(n))):
+            raise NeedleError("tissue plane: point and normal must be finite")
+        ln = float(np.linalg.norm(n))
+        if not ln > 1e-12:
+            raise NeedleError("tissue plane: the normal must be non-zero (it points out of "
+                              "the tissue, toward the cameras)")
+        n = n / ln
+        p.flags.writeable = False
+        n.flags.writeable = False
+        object.__setattr__(self, "point", p)
+        object.__setattr__(self, "normal", n)
+
+    def height(self, pts: np.ndarray) -> np.ndarray:
+        """Signed distance (m) of points (..., 3, reference frame) above the surface;
+        negative inside the tissue."""
+        return (np.asarray(pts, dtype=float) - self.point) @ self.normal
+
+    def visible(self, pts: np.ndarray, margin: float) -> np.ndarray:
+        """Whether each centreline point (..., 3, reference frame) is out of the tissue
+        by at least ``margin`` (m; the wire radius, see the class docstring)."""
+        return self.height(pts) >= margin
+
+    def check_cameras(self, cameras: Sequence[CameraModel]) -> None:
+        """Refuse a plane that a camera is under (it would see the tissue's back)."""
+        for cam in cameras:
+            h = float(self.height(cam.T_ref_cam[:3, 3]))
+            if not h > 0:
+                raise NeedleError(f"tissue plane: camera {cam.name!r} is {-1e3 * h:.1f} mm "
+                                  "under it; the normal must point out of the tissue, "
+                                  "toward the cameras")
 
 
 @dataclass(frozen=True)
@@ -74,7 +138,8 @@ class Refined:
     """A refined pose ``T_ref_N`` with its quality.
 
     ``rms_px``: RMS of the weighted residuals over the points that found the wire;
-    ``support``: the share of the sample points inside the images that found it;
+    ``support``: the share of the sample points inside the images (and out of the
+    tissue, when an occluder is given) that found it;
     ``sigma_position`` (m) and ``sigma_angle`` (rad): one standard deviation of the
     needle centre's position and of its orientation from the pose covariance (largest
     axis); ``ok``: ``rms_px`` and ``support`` within the settings' bounds.
@@ -86,6 +151,10 @@ class Refined:
     sigma_position: float
     sigma_angle: float
     ok: bool
+
+
+#: Forward-difference step of the refinement's Jacobian (rad, m).
+_JAC_EPS = 1e-6
 
 
 def _perturb(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
@@ -111,32 +180,64 @@ class PoseRefiner:
         phi = np.linspace(0.0, needle.arc, self.s.points)
         self.tangents = np.asarray(needle.tangent(phi))
         self.T_cam_ref = [c.T_cam_ref for c in self.cameras]
+        # everything a round projects, in one array (one projection per camera, not
+        # five): the sample points, the points a little before and after each along the
+        # arc (the image normal), the base and the tip and a point just past each (the
+        # outward image tangent); each row is projected on its own, so the values are
+        # those of separate calls
+        K = self.s.points
+        eps = 2e-4      # m along the tangent: a few pixels
+        ends = np.stack([self.points[0], self.points[-1]])
+        out_dir = np.stack([-self.tangents[0], self.tangents[-1]])
+        self._probe = np.concatenate([self.points, self.points - eps * self.tangents,
+                                      self.points + eps * self.tangents, ends,
+                                      ends + eps * out_dir])
+        self._cuts = np.cumsum([K, K, K, 2])
+        # the Jacobian's forward-difference steps: constant, so made once
+        self._steps = [_perturb(np.eye(4), _JAC_EPS * e) for e in np.eye(6)]
+        self._windows: dict[float, tuple[np.ndarray, np.ndarray]] = {}
 
     def _project(self, T: np.ndarray, pts: np.ndarray) -> list[np.ndarray]:
         return [cam.project_from(Tc @ T, pts) for cam, Tc in zip(self.cameras, self.T_cam_ref,
                                                                   strict=True)]
 
-    def _directions(self, T: np.ndarray, p0: np.ndarray, p1: np.ndarray
-                    ) -> list[np.ndarray]:
-        """Unit image vectors from the projections of ``p0`` to those of ``p1`` (frame N,
-        (M, 3) each), per camera; NaN where they coincide."""
+    @staticmethod
+    def _unit(d: np.ndarray) -> np.ndarray:
+        """Rows of ``d`` (M, 2) made unit; NaN where zero."""
+        ln = np.linalg.norm(d, axis=1, keepdims=True)
+        return d / np.where(ln > 0, ln, np.nan)
+
+    def _geometry(self, T: np.ndarray
+                  ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Per camera, at pose ``T``: the projected sample points (K, 2), the unit image
+        normals of the projected arc there (K, 2), and the outward unit image tangents
+        at the base and the tip (2, 2); NaN where undefined."""
         out = []
-        for pa, pb in zip(self._project(T, p0), self._project(T, p1), strict=True):
-            d = pb - pa
-            ln = np.linalg.norm(d, axis=1, keepdims=True)
-            out.append(d / np.where(ln > 0, ln, np.nan))
+        for uv in self._project(T, self._probe):
+            pts, before, after, ends, past = np.split(uv, self._cuts)
+            d = self._unit(after - before)
+            out.append((pts, np.stack([-d[:, 1], d[:, 0]], axis=1), self._unit(past - ends)))
         return out
 
-    def _normals(self, T: np.ndarray) -> list[np.ndarray]:
-        """Unit image normals of the projected arc at the sample points, per camera."""
-        eps = 2e-4      # m along the tangent: a few pixels
-        return [np.stack([-d[:, 1], d[:, 0]], axis=1) for d in self._directions(
-            T, self.points - eps * self.tangents, self.points + eps * self.tangents)]
+    def _window(self, half: float) -> tuple[np.ndarray, np.ndarray]:
+        """The crest search's sample offsets (px) for a window of ``half`` px and the
+        prior over them, made once per window size."""
+        w = self._windows.get(half)
+        if w is None:
+            s = self.s
+            offs = np.arange(-half - s.margin_px, half + s.margin_px + 1e-9, s.step_px)
+            # prefer the crest nearest the prediction when two features are in the window
+            # (the wire and the thread, the jaws or the incision)
+            prior = np.where(np.abs(offs) <= half, np.exp(-0.5 * (offs / half) ** 2), 0.0)
+            w = self._windows[half] = (offs, prior)
+        return w
 
-    def _peaks(self, ridge: np.ndarray, uv: np.ndarray, n: np.ndarray, half: float
-               ) -> tuple[np.ndarray, np.ndarray]:
+    def _peaks(self, ridge: np.ndarray, uv: np.ndarray, n: np.ndarray, half: float,
+               use: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Sub-pixel offset (px, along ``n``) of the ridge's crest near each point, and
-        whether one was found (NaN offset otherwise).
+        whether one was found (NaN offset otherwise); ``use`` (bool, per point): the
+        points to search (the others, hidden, are not found and take no part in the
+        crest's median width).
 
         The crest is the highest sample within ``half`` px (nearer ones preferred); its
         position is the midpoint of the two half-height crossings around it, each
@@ -144,15 +245,12 @@ class PoseRefiner:
         through the top three samples would wander, while the flanks are steep and, for
         a symmetric profile, centred on the axis."""
         s = self.s
-        offs = np.arange(-half - s.margin_px, half + s.margin_px + 1e-9, s.step_px)
+        offs, prior = self._window(half)
         M = offs.size
         xy = uv[:, None, :] + offs[None, :, None] * n[:, None, :]
         prof = cv2.remap(ridge, xy[..., 0].astype(np.float32), xy[..., 1].astype(np.float32),
                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
         prof = np.nan_to_num(prof.astype(float))
-        # prefer the crest nearest the prediction when two features are in the window
-        # (the wire and the thread, the jaws or the incision)
-        prior = np.where(np.abs(offs) <= half, np.exp(-0.5 * (offs / half) ** 2), 0.0)
         k = np.argmax(prof * prior, axis=1)
         rows = np.arange(len(k))
         h = 0.5 * prof[rows, k]
@@ -162,6 +260,8 @@ class PoseRefiner:
         rc = np.where(below & (idx > k[:, None]), idx, M).min(axis=1)
         found = ((lc >= 0) & (rc < M) & (2.0 * h >= s.min_peak)
                  & np.all(np.isfinite(uv), axis=1))
+        if use is not None:
+            found &= use
         lc0, rc0 = np.clip(lc, 0, M - 2), np.clip(rc, 1, M - 1)
         a0, a1 = prof[rows, lc0], prof[rows, lc0 + 1]
         b0, b1 = prof[rows, rc0 - 1], prof[rows, rc0]
@@ -201,15 +301,8 @@ class PoseRefiner:
         a, b = prof[k - 1], prof[k]
         return float(offs[k - 1] + s.step_px * (a - 0.5 * on) / max(a - b, 1e-9))
 
-    def _tangents(self, T: np.ndarray) -> list[np.ndarray]:
-        """Outward unit image tangents at the base and at the tip (2, 2), per camera."""
-        eps = 2e-4
-        ends = np.stack([self.points[0], self.points[-1]])
-        out_dir = np.stack([-self.tangents[0], self.tangents[-1]])
-        return self._directions(T, ends, ends + eps * out_dir)
-
     def _measure(self, ridges: list[np.ndarray], ends: list[np.ndarray], T: np.ndarray,
-                 half: float
+                 half: float, occluder: TissuePlane | None = None
                  ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
                             int, int]:
         """Per camera, the measurements ``(point index, image direction, target pixel,
@@ -217,15 +310,18 @@ class PoseRefiner:
         end along the tangent at the base and the tip (weighted as ``end_weight`` points:
         sliding along itself is the one motion of an arc that its crest cannot see).
         Also the number of sample points that found the crest and of those in the
-        images."""
+        images. Points under ``occluder`` are not searched and not counted in the
+        images; an end under it gives no end measurement."""
         s = self.s
         K = self.points.shape[0]
-        uvs = self._project(T, self.points)
+        vis = None
+        if occluder is not None:
+            vis = occluder.visible(self.points @ T[:3, :3].T + T[:3, 3],
+                                   0.5 * self.needle.wire_diameter)
         out, found_n, inside = [], 0, 0
-        for ridge, endmap, uv, n, tg, cam in zip(ridges, ends, uvs, self._normals(T),
-                                                 self._tangents(T), self.cameras,
-                                                 strict=True):
-            d, found = self._peaks(ridge, uv, n, half)
+        for ridge, endmap, (uv, n, tg), cam in zip(ridges, ends, self._geometry(T),
+                                                   self.cameras, strict=True):
+            d, found = self._peaks(ridge, uv, n, half, vis)
             found &= np.all(np.isfinite(n), axis=1)
             idx = [np.nonzero(found)[0]]
             # rows are 4 wide so the end pair (two directions, two targets) fits
@@ -237,8 +333,12 @@ class PoseRefiner:
             # other in by the same amount, while whatever biases both ends alike (blur,
             # shading, how the ends are cut) cancels. Rows with index -1 are this pair.
             if np.all(np.isfinite(uv[[0, K - 1]])) and np.all(np.isfinite(tg)):
-                ob = self._end(endmap, uv[0], tg[0], half)
-                ot = self._end(endmap, uv[K - 1], tg[1], half)
+                # an end in the tissue: the visible wire stops at the surface, an end
+                # that is not the needle's
+                ob = self._end(endmap, uv[0], tg[0], half) if vis is None or vis[0] \
+                    else math.nan
+                ot = self._end(endmap, uv[K - 1], tg[1], half) if vis is None or vis[K - 1] \
+                    else math.nan
                 if math.isfinite(ob) and math.isfinite(ot):
                     idx.append(np.array([-1]))
                     dirs.append(np.concatenate([tg[0], tg[1]])[None])
@@ -257,14 +357,23 @@ class PoseRefiner:
             out.append((np.concatenate(idx), np.concatenate(dirs), np.concatenate(tgt),
                         np.concatenate(wts)))
             found_n += int(np.count_nonzero(found))
-            inside += int(np.count_nonzero(cam.in_image(uv)))
+            in_img = cam.in_image(uv)
+            inside += int(np.count_nonzero(in_img if vis is None else in_img & vis))
         return out, found_n, inside
 
-    def refine(self, features: Sequence[NeedleFeatures], T: np.ndarray) -> Refined:
+    def refine(self, features: Sequence[NeedleFeatures], T: np.ndarray, *,
+               occluder: TissuePlane | None = None) -> Refined:
         """Refine ``T`` (``T_ref_N``) on the cameras' features (:func:`.needle_features.
         feature_maps`, one per camera, same order): the crest on ``ridge``, the ends on
-        ``ends``."""
+        ``ends``. ``occluder``: the tissue's surface when the needle may be in it (what
+        lies under it is not looked for, and ``Refined.support`` counts only what is
+        out); visibility is judged anew at each round's pose."""
         s = self.s
+        if occluder is not None:
+            if not isinstance(occluder, TissuePlane):
+                raise NeedleError(f"occluder must be a TissuePlane or None, got "
+                                  f"{type(occluder).__name__}")
+            occluder.check_cameras(self.cameras)
         if len(features) != len(self.cameras):
             raise NeedleError(f"expected {len(self.cameras)} feature sets (one per camera), "
                               f"got {len(features)}")
@@ -279,7 +388,7 @@ class PoseRefiner:
         T = np.asarray(T, dtype=float).copy()
         rms, support, H = math.inf, 0.0, None
         for half in (*s.search_px, s.search_px[-1]):
-            meas, found_n, inside = self._measure(ridges, ends, T, half)
+            meas, found_n, inside = self._measure(ridges, ends, T, half, occluder)
             support = found_n / max(inside, 1)
             if found_n < 8:
                 H = None
@@ -319,27 +428,26 @@ class PoseRefiner:
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Residuals ``dir . (uv - target)`` (px) of the measurements, their Jacobian with
         respect to the local pose parameters (forward differences) and prior weights."""
-        eps = 1e-6
+        eps = _JAC_EPS
         # the pose and its six perturbations projected in one call per camera
-        Ts = [T] + [_perturb(T, eps * np.eye(6)[i]) for i in range(6)]
+        Ts = [T] + [T @ D for D in self._steps]
         K = self.points.shape[0]
         pts = np.concatenate([self.points @ Ti[:3, :3].T + Ti[:3, 3] for Ti in Ts])
         proj = [cam.project_from(Tc, pts).reshape(7, K, 2)
                 for cam, Tc in zip(self.cameras, self.T_cam_ref, strict=True)]
-        base = [p[0] for p in proj]
-        cols = [[p[i + 1] for p in proj] for i in range(6)]
         rs, Js, ws = [], [], []
-        for c, (idx, dirs, tgt, wt) in enumerate(meas):
+        for P, (idx, dirs, tgt, wt) in zip(proj, meas, strict=True):
+            base = P[0]
             pt = idx >= 0
             i = idx[pt]
-            r = np.einsum("ki,ki->k", base[c][i] - tgt[pt, :2], dirs[pt, :2])
-            J = np.stack([np.einsum("ki,ki->k", (cols[j][c][i] - base[c][i]) / eps,
-                                    dirs[pt, :2]) for j in range(6)], axis=1)
+            r = np.einsum("ki,ki->k", base[i] - tgt[pt, :2], dirs[pt, :2])
+            # all six columns at once: (6, k, 2) differences along the measured directions
+            J = np.einsum("jki,ki->kj", (P[1:, i] - base[i]) / eps, dirs[pt, :2])
             if not np.all(pt):
                 # the end pair: half the difference of the tip's and the base's offsets
                 d, g = dirs[~pt][0], tgt[~pt][0]
-                r = np.append(r, _pair(base[c], d, g))
-                J = np.vstack([J, [(_pair(cols[j][c], d, g) - r[-1]) / eps
+                r = np.append(r, _pair(base, d, g))
+                J = np.vstack([J, [(_pair(P[j + 1], d, g) - r[-1]) / eps
                                    for j in range(6)]])
             ok = np.isfinite(r) & np.all(np.isfinite(J), axis=1)
             rs.append(r[ok])

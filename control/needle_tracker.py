@@ -31,6 +31,12 @@ previous one (the first time, the heavier of the two modes) and ``NeedleEstimate
 is the other. Telling base from tip needs a cue the outline lacks (the suture at the swage,
 or the grasp that placed it).
 
+**Tissue.** A needle driven into tissue is partly under its surface. Given that surface
+(:class:`TissuePlane`, :meth:`NeedleTracker.set_occluder`), arc points under it are
+expected unseen: chords touching them count neither as support nor as missing wire, and
+a particle that would show less than :attr:`FilterSettings.min_visible` of its arc
+scores 0 (a sliver on a feature is no evidence).
+
 Pure math on arrays: images in, poses out; no I/O. Metres, radians, pixels.
 """
 
@@ -49,7 +55,10 @@ from .errors import NeedleError
 from .geometry import nearest_rigid
 from .needle import Needle
 from .needle_features import NeedleFeatures
-from .needle_refine import PoseRefiner, Refined, RefineSettings, swage_evidence
+from .needle_refine import PoseRefiner, Refined, RefineSettings, TissuePlane, swage_evidence
+
+__all__ = ["FilterSettings", "NeedleEstimate", "NeedleFilter", "NeedleTrack", "NeedleTracker",
+           "TissuePlane", "TrackSettings", "mirror_tilt"]
 
 
 @dataclass(frozen=True)
@@ -70,6 +79,8 @@ class FilterSettings:
     converged_position: float = 0.001   # spread below which the filter has converged (m)
     converged_angle: float = math.radians(3.0)
     converged_score: float = 0.5    # mean point score of the estimate, per camera
+    min_visible: float = 0.2        # with a tissue plane: a view showing less of a
+                                    # particle's arc than this share scores 0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -81,6 +92,8 @@ class FilterSettings:
         if min(self.position_noise, self.rotation_noise, self.grasped_position_noise,
                self.grasped_rotation_noise) < 0 or self.anneal_steps < 0:
             raise NeedleError("motion noise and anneal_steps must be >= 0")
+        if not 0.0 <= self.min_visible < 1.0:
+            raise NeedleError(f"min_visible must be in [0, 1), got {self.min_visible}")
 
 
 @dataclass(frozen=True)
@@ -113,16 +126,23 @@ class NeedleEstimate:
 # -- compiled kernels --------------------------------------------------------------------
 
 @numba.njit(cache=True, inline="always")
-def _pixel(Kc: np.ndarray, dc: np.ndarray, x: float, y: float, z: float
+def _pixel(Kc: np.ndarray, dc: np.ndarray, x: float, y: float, z: float, general: bool
            ) -> tuple[float, float]:
     """OpenCV's projection (rational radial, tangential and thin-prism terms; the tilted
-    model is refused by the filter) of a camera-frame point; NaN behind the camera."""
+    model is refused by the filter) of a camera-frame point; NaN behind the camera.
+    ``general`` False: the rational denominator and thin-prism coefficients are all zero
+    and are skipped (the same values: the skipped terms divide by 1 and add 0)."""
     if z <= 0.0:
         return math.nan, math.nan
     xn, yn = x / z, y / z
     r2 = xn * xn + yn * yn
     r4 = r2 * r2
     r6 = r4 * r2
+    if not general:
+        radial = 1.0 + dc[0] * r2 + dc[1] * r4 + dc[4] * r6
+        xd = xn * radial + 2.0 * dc[2] * xn * yn + dc[3] * (r2 + 2.0 * xn * xn)
+        yd = yn * radial + dc[2] * (r2 + 2.0 * yn * yn) + 2.0 * dc[3] * xn * yn
+        return Kc[0, 0] * xd + Kc[0, 2], Kc[1, 1] * yd + Kc[1, 2]
     radial = (1.0 + dc[0] * r2 + dc[1] * r4 + dc[4] * r6) / \
         (1.0 + dc[5] * r2 + dc[6] * r4 + dc[7] * r6)
     xd = xn * radial + 2.0 * dc[2] * xn * yn + dc[3] * (r2 + 2.0 * xn * xn) \
@@ -132,58 +152,127 @@ def _pixel(Kc: np.ndarray, dc: np.ndarray, x: float, y: float, z: float
     return Kc[0, 0] * xd + Kc[0, 2], Kc[1, 1] * yd + Kc[1, 2]
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _scores(R: np.ndarray, t: np.ndarray, pts: np.ndarray, T_cam_ref: np.ndarray,
-            Ks: np.ndarray, ds: np.ndarray, maps: np.ndarray, sizes: np.ndarray,
-            sigma: float, cap: float) -> np.ndarray:
-    """Per particle and camera (P, C, 2): the supported length ``sum l s`` and the
-    projected length ``sum l`` (px) of the arc inside the image, by the trapezoid rule
-    over the chords between consecutive arc points (``s`` a point's score). Particles
-    ``R`` (P, 3, 3), ``t`` (P, 3) are ``T_ref_N``; ``pts`` (K, 3) arc points in N;
-    ``maps`` (C, H, W) distance maps (px), each camera's valid part ``sizes`` (C, 2) =
-    (W, H). A chord counts only when both its ends are in the image."""
-    P, C, K = R.shape[0], Ks.shape[0], pts.shape[0]
-    out = np.zeros((P, C, 2))
-    inv2s2 = 0.5 / (sigma * sigma)
-    for p in numba.prange(P):
-        for c in range(C):
-            # T_cam_N = T_cam_ref @ T_ref_N, row by row
-            A = T_cam_ref[c]
-            r00 = A[0, 0] * R[p, 0, 0] + A[0, 1] * R[p, 1, 0] + A[0, 2] * R[p, 2, 0]
-            r01 = A[0, 0] * R[p, 0, 1] + A[0, 1] * R[p, 1, 1] + A[0, 2] * R[p, 2, 1]
-            r02 = A[0, 0] * R[p, 0, 2] + A[0, 1] * R[p, 1, 2] + A[0, 2] * R[p, 2, 2]
-            r10 = A[1, 0] * R[p, 0, 0] + A[1, 1] * R[p, 1, 0] + A[1, 2] * R[p, 2, 0]
-            r11 = A[1, 0] * R[p, 0, 1] + A[1, 1] * R[p, 1, 1] + A[1, 2] * R[p, 2, 1]
-            r12 = A[1, 0] * R[p, 0, 2] + A[1, 1] * R[p, 1, 2] + A[1, 2] * R[p, 2, 2]
-            r20 = A[2, 0] * R[p, 0, 0] + A[2, 1] * R[p, 1, 0] + A[2, 2] * R[p, 2, 0]
-            r21 = A[2, 0] * R[p, 0, 1] + A[2, 1] * R[p, 1, 1] + A[2, 2] * R[p, 2, 1]
-            r22 = A[2, 0] * R[p, 0, 2] + A[2, 1] * R[p, 1, 2] + A[2, 2] * R[p, 2, 2]
-            m0 = A[0, 0] * t[p, 0] + A[0, 1] * t[p, 1] + A[0, 2] * t[p, 2] + A[0, 3]
-            m1 = A[1, 0] * t[p, 0] + A[1, 1] * t[p, 1] + A[1, 2] * t[p, 2] + A[1, 3]
-            m2 = A[2, 0] * t[p, 0] + A[2, 1] * t[p, 1] + A[2, 2] * t[p, 2] + A[2, 3]
-            W, H = sizes[c, 0] - 1, sizes[c, 1] - 1
-            sup = 0.0
-            tot = 0.0
-            pu, pv, ps, prev_in = 0.0, 0.0, 0.0, False
-            for k in range(K):
-                q0, q1, q2 = pts[k, 0], pts[k, 1], pts[k, 2]
-                u, v = _pixel(Ks[c], ds[c], r00 * q0 + r01 * q1 + r02 * q2 + m0,
-                              r10 * q0 + r11 * q1 + r12 * q2 + m1,
-                              r20 * q0 + r21 * q1 + r22 * q2 + m2)
-                inside = u >= 0.0 and v >= 0.0 and u <= W and v <= H   # False for NaN
-                sc = 0.0
+@numba.njit(cache=True, nogil=True, inline="always")
+def _score_one(p: int, out: np.ndarray, R: np.ndarray, t: np.ndarray, pts: np.ndarray,
+               T_cam_ref: np.ndarray, Ks: np.ndarray, ds: np.ndarray, general_model: np.ndarray,
+               maps: np.ndarray, sizes: np.ndarray, inv2s2: float, cap: float,
+               plane: np.ndarray, occluded: bool, floor: float) -> None:
+    """Particle ``p``'s row of :func:`_scores` (written into ``out[p]``)."""
+    C, K = Ks.shape[0], pts.shape[0]
+    # the particle's points' heights above the (shifted) plane: the same in every view
+    if occluded:
+        a0 = plane[0] * R[p, 0, 0] + plane[1] * R[p, 1, 0] + plane[2] * R[p, 2, 0]
+        a1 = plane[0] * R[p, 0, 1] + plane[1] * R[p, 1, 1] + plane[2] * R[p, 2, 1]
+        a2 = plane[0] * R[p, 0, 2] + plane[1] * R[p, 1, 2] + plane[2] * R[p, 2, 2]
+        a3 = plane[0] * t[p, 0] + plane[1] * t[p, 1] + plane[2] * t[p, 2] + plane[3]
+    else:
+        a0 = a1 = a2 = a3 = 0.0
+    for c in range(C):
+        # T_cam_N = T_cam_ref @ T_ref_N, row by row
+        A = T_cam_ref[c]
+        r00 = A[0, 0] * R[p, 0, 0] + A[0, 1] * R[p, 1, 0] + A[0, 2] * R[p, 2, 0]
+        r01 = A[0, 0] * R[p, 0, 1] + A[0, 1] * R[p, 1, 1] + A[0, 2] * R[p, 2, 1]
+        r02 = A[0, 0] * R[p, 0, 2] + A[0, 1] * R[p, 1, 2] + A[0, 2] * R[p, 2, 2]
+        r10 = A[1, 0] * R[p, 0, 0] + A[1, 1] * R[p, 1, 0] + A[1, 2] * R[p, 2, 0]
+        r11 = A[1, 0] * R[p, 0, 1] + A[1, 1] * R[p, 1, 1] + A[1, 2] * R[p, 2, 1]
+        r12 = A[1, 0] * R[p, 0, 2] + A[1, 1] * R[p, 1, 2] + A[1, 2] * R[p, 2, 2]
+        r20 = A[2, 0] * R[p, 0, 0] + A[2, 1] * R[p, 1, 0] + A[2, 2] * R[p, 2, 0]
+        r21 = A[2, 0] * R[p, 0, 1] + A[2, 1] * R[p, 1, 1] + A[2, 2] * R[p, 2, 1]
+        r22 = A[2, 0] * R[p, 0, 2] + A[2, 1] * R[p, 1, 2] + A[2, 2] * R[p, 2, 2]
+        m0 = A[0, 0] * t[p, 0] + A[0, 1] * t[p, 1] + A[0, 2] * t[p, 2] + A[0, 3]
+        m1 = A[1, 0] * t[p, 0] + A[1, 1] * t[p, 1] + A[1, 2] * t[p, 2] + A[1, 3]
+        m2 = A[2, 0] * t[p, 0] + A[2, 1] * t[p, 1] + A[2, 2] * t[p, 2] + A[2, 3]
+        W, H = sizes[c, 0] - 1, sizes[c, 1] - 1
+        general = general_model[c]     # the camera's rational or thin-prism terms
+        sup = 0.0
+        tot = 0.0
+        full = 0.0          # the length in the image, hidden or not (occluded only)
+        pu, pv, ps, prev_in, prev_seen = 0.0, 0.0, 0.0, False, False
+        for k in range(K):
+            q0, q1, q2 = pts[k, 0], pts[k, 1], pts[k, 2]
+            u, v = _pixel(Ks[c], ds[c], r00 * q0 + r01 * q1 + r02 * q2 + m0,
+                          r10 * q0 + r11 * q1 + r12 * q2 + m1,
+                          r20 * q0 + r21 * q1 + r22 * q2 + m2, general)
+            inside = u >= 0.0 and v >= 0.0 and u <= W and v <= H   # False for NaN
+            sc = 0.0
+            if not occluded:
                 if inside:
                     d = maps[c, int(v + 0.5), int(u + 0.5)]
-                    if d < cap:
+                    if d == 0.0:            # on a feature: exp(0), without the call
+                        sc = 1.0
+                    elif d < cap:
                         sc = math.exp(-d * d * inv2s2)
                     if prev_in:
                         ln = math.hypot(u - pu, v - pv)
                         sup += 0.5 * ln * (sc + ps)
                         tot += ln
                 pu, pv, ps, prev_in = u, v, sc, inside
-            out[p, c, 0] = sup
-            out[p, c, 1] = tot
+                continue
+            seen = inside and a0 * q0 + a1 * q1 + a2 * q2 + a3 >= 0.0
+            if seen:
+                d = maps[c, int(v + 0.5), int(u + 0.5)]
+                if d == 0.0:
+                    sc = 1.0
+                elif d < cap:
+                    sc = math.exp(-d * d * inv2s2)
+            if inside and prev_in:
+                ln = math.hypot(u - pu, v - pv)
+                full += ln
+                if seen and prev_seen:
+                    sup += 0.5 * ln * (sc + ps)
+                    tot += ln
+            pu, pv, ps, prev_in, prev_seen = u, v, sc, inside, seen
+        if occluded and not tot >= floor * full:
+            sup = 0.0
+            tot = 0.0
+        out[p, c, 0] = sup
+        out[p, c, 1] = tot
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _scores(R: np.ndarray, t: np.ndarray, pts: np.ndarray, T_cam_ref: np.ndarray,
+            Ks: np.ndarray, ds: np.ndarray, general_model: np.ndarray, maps: np.ndarray,
+            sizes: np.ndarray, sigma: float, cap: float, plane: np.ndarray, occluded: bool,
+            floor: float) -> np.ndarray:
+    """Per particle and camera (P, C, 2): the supported length ``sum l s`` and the
+    projected length ``sum l`` (px) of the arc inside the image, by the trapezoid rule
+    over the chords between consecutive arc points (``s`` a point's score). Particles
+    ``R`` (P, 3, 3), ``t`` (P, 3) are ``T_ref_N``; ``pts`` (K, 3) arc points in N;
+    ``ds`` (C, 14) distortion vectors, ``general_model`` (C,) whether a camera's rational
+    or thin-prism terms are used; ``maps`` (C, H, W) distance maps (px), each camera's
+    valid part ``sizes`` (C, 2) = (W, H). A chord counts only when both its ends are in
+    the image.
+
+    ``occluded``: a tissue plane hides points ``x`` (reference frame) with
+    ``plane[:3] . x + plane[3] < 0`` (the plane already shifted by the visibility
+    margin); a chord then counts only when both its ends are also visible. A view whose
+    visible length is below ``floor`` times its length in the image (the plane ignored)
+    scores (0, 0): a sliver of arc that happens to lie on a feature is no evidence."""
+    out = np.zeros((R.shape[0], Ks.shape[0], 2))
+    inv2s2 = 0.5 / (sigma * sigma)
+    for p in numba.prange(R.shape[0]):
+        _score_one(p, out, R, t, pts, T_cam_ref, Ks, ds, general_model, maps, sizes, inv2s2,
+                   cap, plane, occluded, floor)
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _scores_serial(R: np.ndarray, t: np.ndarray, pts: np.ndarray, T_cam_ref: np.ndarray,
+                   Ks: np.ndarray, ds: np.ndarray, general_model: np.ndarray, maps: np.ndarray,
+                   sizes: np.ndarray, sigma: float, cap: float, plane: np.ndarray,
+                   occluded: bool, floor: float) -> np.ndarray:
+    """:func:`_scores` on the calling thread, for a few poses: starting the thread team
+    costs more than it saves there, and on a busy machine it waits for a free core."""
+    out = np.zeros((R.shape[0], Ks.shape[0], 2))
+    inv2s2 = 0.5 / (sigma * sigma)
+    for p in range(R.shape[0]):
+        _score_one(p, out, R, t, pts, T_cam_ref, Ks, ds, general_model, maps, sizes, inv2s2,
+                   cap, plane, occluded, floor)
+    return out
+
+
+#: Fewer poses than this are scored on the calling thread (:func:`_scores_serial`).
+_PARALLEL_MIN = 64
 
 
 # -- the filter ---------------------------------------------------------------------------
@@ -193,11 +282,13 @@ class NeedleFilter:
 
     ``cameras`` share the reference frame (``CameraModel.T_ref_cam``); images passed to
     :meth:`initialize` and :meth:`update` are distance maps from :func:`feature_distance`,
-    one per camera in the same order.
+    one per camera in the same order. ``occluder``: the tissue's surface when the needle
+    may be in it (:meth:`set_occluder`).
     """
 
     def __init__(self, needle: Needle, cameras: Sequence[CameraModel],
-                 settings: FilterSettings | None = None) -> None:
+                 settings: FilterSettings | None = None, *,
+                 occluder: TissuePlane | None = None) -> None:
         if not cameras:
             raise NeedleError("the needle filter needs at least one camera")
         for cam in cameras:
@@ -214,6 +305,8 @@ class NeedleFilter:
         for i, c in enumerate(self.cameras):
             ds[i, :c.dist.size] = c.dist
         self.ds = ds
+        # rational or thin-prism terms in use (else the kernel skips them: same values)
+        self.general_model = np.array([bool(np.any(d[5:12] != 0)) for d in ds])
         self.sizes = np.array([c.size for c in self.cameras], dtype=np.int64)
         # the half turn that maps the arc onto itself (base <-> tip), in frame N
         b = needle.arc / 2
@@ -223,6 +316,25 @@ class NeedleFilter:
         self.t = np.empty((0, 3))
         self.w = np.empty(0)
         self.last: NeedleEstimate | None = None
+        self.occluder: TissuePlane | None = None
+        self._plane = np.zeros(4)
+        self.set_occluder(occluder)
+
+    def set_occluder(self, plane: TissuePlane | None) -> None:
+        """Score the particles with ``plane`` hiding what lies under it (``None``: nothing
+        hidden) from the next update on. A point is hidden unless its centreline stands
+        a wire radius above the plane (:class:`.needle_refine.TissuePlane`); hidden
+        chords are neither support nor missing wire, and a view that shows less than
+        :attr:`FilterSettings.min_visible` of a particle's arc scores 0."""
+        if plane is not None:
+            if not isinstance(plane, TissuePlane):
+                raise NeedleError(f"occluder must be a TissuePlane or None, got "
+                                  f"{type(plane).__name__}")
+            plane.check_cameras(self.cameras)
+            # n . x + c >= 0 <=> x stands the wire radius above the surface or more
+            self._plane = np.append(plane.normal, -float(plane.normal @ plane.point)
+                                    - 0.5 * self.needle.wire_diameter)
+        self.occluder = plane
 
     # -- maps --------------------------------------------------------------------------
     def _stack(self, maps: Sequence[np.ndarray]) -> np.ndarray:
@@ -250,8 +362,10 @@ class NeedleFilter:
         return self._match(raw, np.maximum(raw[:, :, 0].max(axis=0), 1.0))
 
     def _raw(self, stacked: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-        return _scores(R, t, self.points, self.T_cam_ref, self.Ks, self.ds, stacked,
-                       self.sizes, self.s.sigma_px, self.s.cap_px)
+        kernel = _scores if R.shape[0] >= _PARALLEL_MIN else _scores_serial
+        return kernel(R, t, self.points, self.T_cam_ref, self.Ks, self.ds, self.general_model,
+                      stacked, self.sizes, self.s.sigma_px, self.s.cap_px, self._plane,
+                      self.occluder is not None, self.s.min_visible)
 
     @staticmethod
     def _match(raw: np.ndarray, norm: np.ndarray) -> np.ndarray:
@@ -444,6 +558,8 @@ class NeedleTracker:
     the suture thread at the swage tells base from tip.
 
     Images go in as :class:`NeedleFeatures` (:func:`feature_maps`), one per camera.
+    Once the needle is in tissue, :meth:`set_occluder` gives the tissue's surface, so
+    that the part under it is not taken for missing wire.
     """
 
     def __init__(self, needle: Needle, cameras: Sequence[CameraModel],
@@ -456,6 +572,18 @@ class NeedleTracker:
         self.needle, self.cameras = needle, tuple(cameras)
         self.last: NeedleTrack | None = None
         self._moved: np.ndarray | None = None
+
+    @property
+    def occluder(self) -> TissuePlane | None:
+        """The tissue plane in use (``None``: nothing hides the needle)."""
+        return self.filter.occluder
+
+    def set_occluder(self, plane: TissuePlane | None) -> None:
+        """The tissue's surface (reference frame) hides the part of the needle under it,
+        from the next update (or initialisation) on, in the filter's score and the
+        refinement; ``None`` when the needle is out of the tissue again. Refuses a plane
+        that a camera is under."""
+        self.filter.set_occluder(plane)
 
     def initialize(self, features: Sequence[NeedleFeatures],
                    depth_range: tuple[float, float]) -> NeedleTrack:
@@ -492,7 +620,7 @@ class NeedleTracker:
         ridges = [f.ridge for f in features]
         ref: Refined | None = None
         for T0 in starts:
-            r = self.refiner.refine(features, T0)
+            r = self.refiner.refine(features, T0, occluder=self.occluder)
             # a fit that passes beats one that does not; then the closer fit
             if ref is None or (r.ok, -r.rms_px) > (ref.ok, -ref.rms_px):
                 ref = r
@@ -507,7 +635,7 @@ class NeedleTracker:
             twin = pose.copy()
             twin[:3, :3] = pose[:3, :3] @ self.filter.flip
             if ref.ok:
-                again = self.refiner.refine(features, twin)
+                again = self.refiner.refine(features, twin, occluder=self.occluder)
                 if again.ok:
                     ref, twin = again, again.pose
             pose = twin

@@ -15,7 +15,7 @@ from oralnav.control.errors import NeedleError
 from oralnav.control.geometry import transform_from_euler
 from oralnav.control.needle import Needle
 from oralnav.control.needle_features import feature_maps
-from oralnav.control.needle_refine import PoseRefiner, RefineSettings, swage_evidence
+from oralnav.control.needle_refine import PoseRefiner, RefineSettings, TissuePlane, swage_evidence
 from oralnav.control.needle_tracker import FilterSettings, NeedleTracker, TrackSettings, mirror_tilt
 
 K = np.array([[600.0, 0, 240], [0, 600.0, 180], [0, 0, 1]])   # the stereo endoscope's f
@@ -28,17 +28,24 @@ T_TRUE = transform_from_euler([0.002, -0.001, 0.1], [25, -10, 30])
 WIRE_PX = 6.0                                          # 1 mm at 0.1 m
 
 
-def _draw(cam, T=T_TRUE, thread=False, noise=2.0, seed=0):
+def _draw(cam, T=T_TRUE, thread=False, noise=2.0, seed=0, plane=None):
     """A light pad with the needle drawn as an anti-aliased dark wire (6 px), optionally
-    with a thin (2 px) thread leaving the base."""
+    with a thin (2 px) thread leaving the base; with ``plane`` (a TissuePlane), only
+    the runs of the wire's axis above it."""
     rng = np.random.default_rng(seed)
     img = np.clip(170 + rng.normal(0, noise, (cam.height, cam.width)), 0, 255).astype(np.uint8)
     Tc = cam.T_cam_ref @ T
     # OpenCV caps thick lines round: stop the drawn axis a wire radius short of each end
     # so the caps reach the true ends, as the needle's do
     inset = 0.5 * NEEDLE.wire_diameter / NEEDLE.radius
-    uv = cam.project_from(Tc, NEEDLE.point(np.linspace(inset, NEEDLE.arc - inset, 300)))
-    cv2.polylines(img, [np.round(uv * 16).astype(np.int32)], False, 70, 6, cv2.LINE_AA, 4)
+    axis = NEEDLE.point(np.linspace(inset, NEEDLE.arc - inset, 300))
+    uv = cam.project_from(Tc, axis)
+    keep = np.ones(len(axis), bool) if plane is None else \
+        plane.height(axis @ T[:3, :3].T + T[:3, 3]) >= 0
+    for run in np.split(np.arange(len(axis)), np.nonzero(np.diff(keep))[0] + 1):
+        if keep[run[0]] and run.size > 1:
+            cv2.polylines(img, [np.round(uv[run] * 16).astype(np.int32)], False, 70, 6,
+                          cv2.LINE_AA, 4)
     if thread:
         d = np.linspace(0.0, 0.008, 40)[:, None]
         pts = NEEDLE.base - d * NEEDLE.tangent(0.0)
@@ -219,3 +226,75 @@ def test_bad_input_is_refused():
         RefineSettings(search_px=(0.2,))
     with pytest.raises(NeedleError):
         PoseRefiner(NEEDLE, [])
+
+
+# -- the tissue plane ----------------------------------------------------------------------
+
+def _plane_in_N(point_N, normal_N, T=T_TRUE):
+    return TissuePlane(T[:3, :3] @ np.asarray(point_N) + T[:3, 3],
+                       T[:3, :3] @ np.asarray(normal_N))
+
+
+# points with y_N above 0.6 r (the middle ~45 % of the arc) are in the tissue
+MIDDLE_IN = _plane_in_N([0.0, 0.6 * NEEDLE.radius, 0.0], [0.0, -1.0, 0.0])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_refinement_with_the_plane_fits_the_visible_arc(seed):
+    """Occluder semantics in the refinement: with the middle of the arc in the tissue
+    (not drawn), the fit given the plane neither looks for the hidden points nor counts
+    them, so it finds the whole visible arc and lands within 0.15 mm and 1 deg, as on
+    a free needle; without the plane the hidden half is missing wire: about half the arc
+    found, below the 60 % a fit needs."""
+    feats = [feature_maps(_draw(c, seed=seed, plane=MIDDLE_IN), WIRE_PX) for c in (LEFT, RIGHT)]
+    ref = PoseRefiner(NEEDLE, [LEFT, RIGHT])
+    start = _perturbed(T_TRUE, 1.0, 4.0, seed)
+    r = ref.refine(feats, start, occluder=MIDDLE_IN)
+    dp, da = _err(r.pose, T_TRUE)
+    assert dp < 0.15e-3 and da < 1.0, (dp, da)
+    assert r.ok and r.support > 0.95 and r.rms_px < 0.3
+    bare = ref.refine(feats, start)
+    assert not bare.ok and 0.35 < bare.support < 0.6
+
+
+def test_measurements_skip_hidden_points_and_ends():
+    """Occluder semantics, point by point: with the base part under the plane (the
+    wire drawn whole, so only the plane can drop it), no crest is searched at a hidden
+    point, the support counts only the visible points in the images, and the base's end
+    is not measured (the tip's is, alone); without the plane both ends are measured, as
+    a pair."""
+    feats = _feats([LEFT, RIGHT])
+    ref = PoseRefiner(NEEDLE, [LEFT, RIGHT])
+    K = ref.points.shape[0]
+    # visible: x_N <= r cos(0.4 pi), i.e. phi >= 0.4 pi (the base's 40 % hidden)
+    base_in = _plane_in_N([NEEDLE.radius * math.cos(0.4 * math.pi), 0.0, 0.0],
+                          [-1.0, 0.0, 0.0])
+    ridges = [f.ridge for f in feats]
+    ends = [f.ends for f in feats]
+    vis = base_in.visible(ref.points @ T_TRUE[:3, :3].T + T_TRUE[:3, 3],
+                          0.5 * NEEDLE.wire_diameter)
+    assert not vis[0] and vis[-1] and 0.5 < vis.mean() < 0.7
+    meas, found, inside = ref._measure(ridges, ends, T_TRUE, 3.0, base_in)
+    assert inside == 2 * int(np.count_nonzero(vis))
+    assert found == inside
+    for idx, _, _, wt in meas:
+        crest = idx[wt == 1.0]
+        assert np.all(vis[crest]) and crest.size == np.count_nonzero(vis)
+        assert -1 not in idx and 0 not in idx
+        assert (K - 1) in idx[wt > 1.0]                 # the tip's end, alone
+    meas, found, inside = ref._measure(ridges, ends, T_TRUE, 3.0)
+    assert inside == 2 * K
+    assert all(-1 in idx for idx, _, _, _ in meas)
+
+
+def test_bad_occluder_is_refused():
+    """Bad input: a zero normal, an occluder that is not a TissuePlane, a plane with a
+    camera under it (its normal into the tissue)."""
+    ref = PoseRefiner(NEEDLE, [LEFT, RIGHT])
+    feats = _feats([LEFT, RIGHT])
+    with pytest.raises(NeedleError, match="non-zero"):
+        TissuePlane([0.0, 0.0, 0.1], [0.0, 0.0, 0.0])
+    with pytest.raises(NeedleError, match="TissuePlane"):
+        ref.refine(feats, T_TRUE, occluder=([0.0, 0.0, 0.1], [0.0, 0.0, -1.0]))
+    with pytest.raises(NeedleError, match="under it"):
+        ref.refine(feats, T_TRUE, occluder=TissuePlane([0.0, 0.0, 0.1], [0.0, 0.0, 1.0]))
