@@ -11,7 +11,8 @@
     oralnav plan fpsm --mesh FILE --slices M --points N --out FPSM.json [--json]
     oralnav plan place --scene FILE [--figures DIR] [--json]
     oralnav bench navigation|control|calibration|planning [--quick] --out DIR
-    oralnav bench needle [--trials N] [--seed S] [--workers W] [--quick] --out DIR [--json]
+    oralnav bench needle [--trials N] [--seed S] [--workers W] [--quick] [--tracking]
+                         --out DIR [--json]
 
 Every ``--json`` prints exactly one JSON object on stdout; progress and logs go to stderr.
 Exit status: 0 done, 2 bad input (the message names the file and key), 1 anything else.
@@ -336,6 +337,11 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
     _emit(args, s, f"{s['trials']} trials: overall {100 * s['overall']:.1f} %; "
                    + ", ".join(f"{k} {100 * v:.1f} %" for k, v in s["steps"].items())
                    + f" (details in {Path(args.out) / 'needle.json'})")
+    if args.tracking:
+        from oralnav.bench import needle_tracking
+
+        # the speed/accuracy chart goes to the same folder; its summary to stderr
+        needle_tracking.main(Path(args.out), quick=args.quick, seed=args.seed)
     return 0
 
 
@@ -437,6 +443,10 @@ def build_parser() -> argparse.ArgumentParser:
     nd.add_argument("--out", required=True, help="folder for needle.json (and charts)")
     nd.add_argument("--json", action="store_true",
                     help='print {"trials", "overall", "steps"} as one JSON object')
+    nd.add_argument("--tracking", action="store_true",
+                    help="also chart tracking speed against accuracy (particles 100..10000) "
+                         "and where the tracker loses the needle: needle_tracking.json "
+                         "(about 15 min; 2 with --quick)")
     nd.set_defaults(func=cmd_bench_needle)
     return p
 

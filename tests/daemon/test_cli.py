@@ -114,3 +114,26 @@ def test_oralnavd_check_and_bad_config(tmp_path, capsys):
     assert main.run(["--config", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "d.toml" in err and "bogus" in err and "unknown key" in err
+
+
+def test_bench_needle_tracking_flag_runs_the_tracking_chart(tmp_path, capsys, monkeypatch):
+    """Issue 7 benchmarks: `oralnav bench needle --tracking` runs the Monte Carlo and the
+    tracking speed/accuracy chart into the same folder, with the same seed and quickness,
+    and --json still prints exactly one object (the Monte Carlo's summary). Both benches
+    are replaced by recorders here; their own tests run them."""
+    from oralnav.bench import needle, needle_tracking
+
+    calls = []
+    steps = {k: 0.5 for k in ("NG", "NH", "ND", "NR", "NP")}
+    monkeypatch.setattr(needle, "main", lambda out, **kw: calls.append(("mc", out, kw))
+                        or {"trials": 2, "overall": 0.5, "steps": steps})
+    monkeypatch.setattr(needle_tracking, "main",
+                        lambda out, **kw: calls.append(("tracking", out, kw)) or {})
+    assert cli.run(["bench", "needle", "--trials", "2", "--seed", "7", "--quick",
+                    "--tracking", "--out", str(tmp_path), "--json"]) == 0
+    assert _one_json(capsys) == {"trials": 2, "overall": 0.5, "steps": steps}
+    assert [c[0] for c in calls] == ["mc", "tracking"]
+    assert calls[1][1] == tmp_path and calls[1][2] == {"quick": True, "seed": 7}
+    calls.clear()
+    assert cli.run(["bench", "needle", "--trials", "2", "--out", str(tmp_path)]) == 0
+    assert [c[0] for c in calls] == ["mc"]
