@@ -124,6 +124,11 @@ class RefineSettings:
     end_weight: float = 6.0      # an end measurement counts as this many crest points
     margin_px: float = 10.0      # profile beyond the search window, for the crest's flanks
     max_width_ratio: float = 1.3  # crests wider than this times the median are not used
+    # the ends' common outward offset (px): the half-level point of a blurred, rounded
+    # end sits this far out of it; a pair further than end_bias_tol_px from it holds
+    # something that is not an end (where the thread leaves the tangent, an edge)
+    end_bias_px: float = 1.25
+    end_bias_tol_px: float = 2.75
 
     def __post_init__(self) -> None:
         if self.points < 8 or not self.search_px or min(self.search_px) <= self.step_px:
@@ -302,7 +307,7 @@ class PoseRefiner:
         return float(offs[k - 1] + s.step_px * (a - 0.5 * on) / max(a - b, 1e-9))
 
     def _measure(self, ridges: list[np.ndarray], ends: list[np.ndarray], T: np.ndarray,
-                 half: float, occluder: TissuePlane | None = None
+                 half: float, occluder: TissuePlane | None = None, tip_only: bool = False
                  ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
                             int, int]:
         """Per camera, the measurements ``(point index, image direction, target pixel,
@@ -335,25 +340,37 @@ class PoseRefiner:
             if np.all(np.isfinite(uv[[0, K - 1]])) and np.all(np.isfinite(tg)):
                 # an end in the tissue: the visible wire stops at the surface, an end
                 # that is not the needle's
-                ob = self._end(endmap, uv[0], tg[0], half) if vis is None or vis[0] \
-                    else math.nan
+                ob = self._end(endmap, uv[0], tg[0], half) \
+                    if (vis is None or vis[0]) and not tip_only else math.nan
                 ot = self._end(endmap, uv[K - 1], tg[1], half) if vis is None or vis[K - 1] \
                     else math.nan
+                b0 = s.end_bias_px
+                weight = s.end_weight
+                if math.isfinite(ob) and math.isfinite(ot) \
+                        and abs(0.5 * (ob + ot) - b0) > s.end_bias_tol_px:
+                    # the two disagree: a pose slid along the thread finds a false "end"
+                    # where the thread leaves the tangent, and as a pair it would hold
+                    # the pose half-way; keep the end nearer the expected offset
+                    if abs(ob - b0) > abs(ot - b0):
+                        ob = math.nan
+                    else:
+                        ot = math.nan
+                if math.isfinite(ob) != math.isfinite(ot):
+                    # one end only (the thread continues the crest past the swage, an
+                    # end is hidden, or it was dropped above): paired with the other end
+                    # where the expected bias puts it, so it still measures the slide
+                    # alone (a lone end's residual would also push the pose sideways,
+                    # into the directions the crest barely sees), at half weight
+                    if math.isfinite(ob):
+                        ot = 2.0 * b0 - ob
+                    else:
+                        ob = 2.0 * b0 - ot
+                    weight = 0.5 * s.end_weight
                 if math.isfinite(ob) and math.isfinite(ot):
                     idx.append(np.array([-1]))
                     dirs.append(np.concatenate([tg[0], tg[1]])[None])
                     tgt.append(np.concatenate([uv[0] + ob * tg[0], uv[K - 1] + ot * tg[1]])[None])
-                    wts.append(np.array([s.end_weight]))
-                else:
-                    # one end only (the thread continues the crest past the swage, or an
-                    # end is hidden): used alone, with the blur's outward bias (1-2 px)
-                    # uncancelled, at half weight
-                    for o, k, j in ((ob, 0, 0), (ot, K - 1, 1)):
-                        if math.isfinite(o):
-                            idx.append(np.array([k]))
-                            dirs.append(np.concatenate([tg[j], [0.0, 0.0]])[None])
-                            tgt.append(np.concatenate([uv[k] + o * tg[j], [0.0, 0.0]])[None])
-                            wts.append(np.array([0.5 * s.end_weight]))
+                    wts.append(np.array([weight]))
             out.append((np.concatenate(idx), np.concatenate(dirs), np.concatenate(tgt),
                         np.concatenate(wts)))
             found_n += int(np.count_nonzero(found))
@@ -362,12 +379,15 @@ class PoseRefiner:
         return out, found_n, inside
 
     def refine(self, features: Sequence[NeedleFeatures], T: np.ndarray, *,
-               occluder: TissuePlane | None = None) -> Refined:
+               occluder: TissuePlane | None = None, tip_only: bool = False) -> Refined:
         """Refine ``T`` (``T_ref_N``) on the cameras' features (:func:`.needle_features.
         feature_maps`, one per camera, same order): the crest on ``ridge``, the ends on
         ``ends``. ``occluder``: the tissue's surface when the needle may be in it (what
         lies under it is not looked for, and ``Refined.support`` counts only what is
-        out); visibility is judged anew at each round's pose."""
+        out); visibility is judged anew at each round's pose. ``tip_only``: the base's end
+        is not measured (a threaded needle: the thread continues the wire past the swage,
+        and where it leaves the tangent looks like an end), so the tip alone holds the
+        slide along the arc."""
         s = self.s
         if occluder is not None:
             if not isinstance(occluder, TissuePlane):
@@ -388,7 +408,7 @@ class PoseRefiner:
         T = np.asarray(T, dtype=float).copy()
         rms, support, H = math.inf, 0.0, None
         for half in (*s.search_px, s.search_px[-1]):
-            meas, found_n, inside = self._measure(ridges, ends, T, half, occluder)
+            meas, found_n, inside = self._measure(ridges, ends, T, half, occluder, tip_only)
             support = found_n / max(inside, 1)
             if found_n < 8:
                 H = None
@@ -465,31 +485,47 @@ def _pair(uv: np.ndarray, d: np.ndarray, g: np.ndarray) -> float:
 
 def swage_evidence(needle: Needle, cameras: Sequence[CameraModel],
                    ridges: Sequence[np.ndarray], T: np.ndarray, *,
-                   span: tuple[float, float] = (0.002, 0.005), points: int = 8) -> float:
-    """How much more ridge lies just beyond the base than just beyond the tip (DN, mean
-    over the views): the suture thread leaves the swage, nothing leaves the tip. Positive:
-    ``T`` has the base where the thread is; negative: the twin (base and tip swapped) is
+                   span: tuple[float, float] = (0.002, 0.008), points: int = 12,
+                   cone: float = 0.15) -> float:
+    """How much more ridge lies beyond the base than beyond the tip (DN, mean over the
+    views): the suture thread leaves the swage, nothing leaves the tip. Positive: ``T``
+    has the base where the thread is; negative: the twin (base and tip swapped) is
     right; near 0: no cue (no thread visible, or both ends hidden).
 
-    Samples ``points`` points ``span`` (m) past each end along the arc's tangent: not
-    right at the end, where a pose slid a little along the arc would read the wire.
+    Samples ``points`` distances ``span`` (m) past each end along the arc's tangent: not
+    right at the end, where a pose slid a little along the arc would read the wire; and
+    as far as a few millimetres, so that a pose slid along the arc by as much (its one
+    end inside the wire, the other out on the thread) reads the wire stopping short
+    beyond the first end and the thread going on beyond the other. At each distance
+    ``d`` the thread may have bent off the tangent: the ridge's highest value across a
+    cross of half-width ``cone * d`` (in the needle's plane and out of it) is taken.
     """
-    d = np.linspace(span[0], span[1], points)[:, None]
-    beyond_base = needle.base - d * needle.tangent(0.0)
-    beyond_tip = needle.tip + d * needle.tangent(needle.arc)
+    d = np.linspace(span[0], span[1], points)
+    lat = np.linspace(-cone, cone, 5)
+    # unit offsets across the tangent at each end: in the plane (radial) and out of it
+    ends = []
+    for p, t in ((needle.base, -needle.tangent(0.0)), (needle.tip, needle.tangent(needle.arc))):
+        radial = p / np.linalg.norm(p)
+        ez = np.array([0.0, 0.0, 1.0])
+        across = np.concatenate([lat[:, None] * radial, lat[:, None] * ez])     # (10, 3)
+        pts = p + d[:, None, None] * (t[None, None, :] + across[None, :, :])    # (n, 10, 3)
+        ends.append(pts.reshape(-1, 3))
     diffs = []
     for cam, ridge in zip(cameras, ridges, strict=True):
         Tc = cam.T_cam_ref @ T
         vals = []
-        for pts in (beyond_base, beyond_tip):
+        for pts in ends:
             uv = cam.project_from(Tc, pts).astype(np.float32)
             ok = np.all(np.isfinite(uv), axis=1) & cam.in_image(uv)
-            if not np.any(ok):
+            v = cv2.remap(np.asarray(ridge, np.float32), uv[:, 0:1], uv[:, 1:2],
+                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                          borderValue=0.0)[:, 0].astype(float)
+            v = np.where(ok, v, np.nan).reshape(points, -1)
+            seen = np.any(np.isfinite(v), axis=1)
+            if not np.any(seen):
                 vals.append(math.nan)
                 continue
-            v = cv2.remap(np.asarray(ridge, np.float32), uv[ok, 0:1], uv[ok, 1:2],
-                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-            vals.append(float(np.mean(v)))
+            vals.append(float(np.mean(np.nanmax(v[seen], axis=1))))
         if all(math.isfinite(v) for v in vals):
             diffs.append(vals[0] - vals[1])
     return float(np.mean(diffs)) if diffs else 0.0

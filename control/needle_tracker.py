@@ -52,7 +52,7 @@ from scipy.spatial.transform import Rotation
 
 from .camera import CameraModel
 from .errors import NeedleError
-from .geometry import nearest_rigid
+from .geometry import nearest_rigid, rotation_angle
 from .needle import Needle
 from .needle_features import NeedleFeatures
 from .needle_refine import PoseRefiner, Refined, RefineSettings, TissuePlane, swage_evidence
@@ -521,14 +521,17 @@ class TrackSettings:
     refined pose each update (with the motion noise), which keeps the swarm on the
     precise answer; ``swage_min``: the ridge difference (DN) that decides base from tip;
     ``require_swage``: without that decision the track has not converged (a drive planned
-    on the twin would push the swage first); off only for a needle without a thread.
+    on the twin would push the swage first); off only for a needle without a thread. A
+    continuing track (updates after a converged one, on the same twin) carries its
+    decision while no update shows the thread decisively at the other end; one that
+    does puts the track in doubt until fresh evidence decides again.
     """
 
     max_sigma_position: float = 0.0003
     max_sigma_angle: float = math.radians(1.5)
     min_score: float = 0.5
     inject: float = 0.2
-    swage_min: float = 4.0
+    swage_min: float = 8.0
     require_swage: bool = True      # a threaded needle: base and tip must be told apart
 
 
@@ -572,6 +575,10 @@ class NeedleTracker:
         self.needle, self.cameras = needle, tuple(cameras)
         self.last: NeedleTrack | None = None
         self._moved: np.ndarray | None = None
+        # the base/tip decision carried along a continuing track: the last pose moved by
+        # the motion since (``_prior``), and whether its base and tip were decided
+        self._prior: np.ndarray | None = None
+        self._sided = False
 
     @property
     def occluder(self) -> TissuePlane | None:
@@ -593,19 +600,27 @@ class NeedleTracker:
         neither, and a short stereo baseline barely separates them."""
         self.last = None
         self._moved = None
+        self._prior = None
+        self._sided = False
         est = self.filter.initialize([f.distance for f in features], depth_range)
         starts = [est.pose] + ([est.best] if est.best is not None else [])
         ref = self.cameras[0].T_ref_cam[:3, 3]
         starts += [mirror_tilt(T, ref) for T in starts]
+        # and each slid along its own arc: the crest cannot see a slide, and a start slid
+        # toward the thread can lock onto where the thread leaves the tangent as if it
+        # were the end; the right slide fits the crest best (the thread bends away)
+        starts += [T @ S for T in starts for S in _SLIDES]
         return self._finish(features, est, starts)
 
     def predict(self, delta: np.ndarray | None = None) -> None:
         """Motion update: :meth:`NeedleFilter.predict`; the last refined pose moves with
         the gripper too (it is the refinement's first start next update)."""
         self.filter.predict(delta)
-        if self.last is not None and self.last.refined is not None and self.last.refined.ok:
+        if self.last is not None:
             T = self.last.pose
-            self._moved = T if delta is None else np.asarray(delta, dtype=float) @ T
+            self._prior = T if delta is None else np.asarray(delta, dtype=float) @ T
+            if self.last.refined is not None and self.last.refined.ok:
+                self._moved = self._prior
 
     def update(self, features: Sequence[NeedleFeatures]) -> NeedleTrack:
         """Measurement update on the current images, then the finish, started from the
@@ -618,28 +633,33 @@ class NeedleTracker:
                 starts: list[np.ndarray]) -> NeedleTrack:
         s = self.s
         ridges = [f.ridge for f in features]
-        ref: Refined | None = None
-        for T0 in starts:
-            r = self.refiner.refine(features, T0, occluder=self.occluder)
-            # a fit that passes beats one that does not; then the closer fit
-            if ref is None or (r.ok, -r.rms_px) > (ref.ok, -ref.rms_px):
-                ref = r
-            if r.ok and r.rms_px <= 0.5 * self.refiner.s.max_rms_px and len(starts) <= 2:
-                break       # tracking: the first start is already good
-        assert ref is not None
+        ref = self._best_fit(features, starts, first_good=len(starts) <= 2)
         pose = ref.pose if ref.ok else est.pose
         swage = swage_evidence(self.needle, self.cameras, ridges, pose)
-        if swage < -s.swage_min:
-            # the thread is at the other end: the twin is the needle; fit it again, since
-            # the ends were read the other way round
+        # a continuing track keeps the base/tip decision it made on decisive evidence:
+        # the thread hides behind the jaws or the tissue, or lies edge-on, for updates
+        # on end, while the filter's swarm and the refinement stay on the same twin
+        # (the other is a half turn away, and each update starts from the last pose)
+        carried = (self._sided and self._prior is not None
+                   and rotation_angle(self._prior[:3, :3].T @ pose[:3, :3]) < 0.5 * math.pi)
+        if (ref.ok and s.require_swage and swage < s.swage_min) \
+                or (not carried and swage < -s.swage_min):
+            # the thread does not confirm this twin: the other, fitted again (with its
+            # own tip as the end that holds the slide) and from it slid both ways (the
+            # twin of a pose slid onto the thread is slid as far the other way, its tip
+            # short of the true tip). A carried decision yields only to decisive
+            # evidence for the other twin
             twin = pose.copy()
             twin[:3, :3] = pose[:3, :3] @ self.filter.flip
+            twin_ref = ref
             if ref.ok:
-                again = self.refiner.refine(features, twin, occluder=self.occluder)
+                again = self._best_fit(features, [twin] + [twin @ S for S in _SLIDES])
                 if again.ok:
-                    ref, twin = again, again.pose
-            pose = twin
-            swage = swage_evidence(self.needle, self.cameras, ridges, pose)
+                    twin_ref, twin = again, again.pose
+            twin_swage = swage_evidence(self.needle, self.cameras, ridges, twin)
+            if twin_swage > swage and (not carried or twin_swage >= s.swage_min):
+                ref, pose, swage = twin_ref, twin, twin_swage
+                carried = False
         if ref.ok:
             self._inject(pose)
         reason = ""
@@ -651,13 +671,41 @@ class NeedleTracker:
         elif ref.sigma_position > s.max_sigma_position or ref.sigma_angle > s.max_sigma_angle:
             reason = (f"the views leave the pose uncertain ({1e3 * ref.sigma_position:.2f} mm, "
                       f"{math.degrees(ref.sigma_angle):.1f} deg)")
-        elif s.require_swage and swage < s.swage_min:
+        elif s.require_swage and carried and swage < -s.swage_min:
+            reason = (f"the thread is at the end the track took for the tip (evidence "
+                      f"{swage:.1f} DN): base and tip are in doubt")
+        elif s.require_swage and swage < s.swage_min and not carried:
             reason = (f"base and tip are not told apart (thread evidence {swage:.1f} DN, "
                       f"{s.swage_min:.1f} needed)")
         track = NeedleTrack(pose, est, ref, swage, not reason, reason)
+        if not reason:
+            self._sided = True
+        elif s.require_swage and carried and swage < -s.swage_min:
+            self._sided = False       # decide afresh on the next update's evidence
         self.last = track
         self._moved = None
+        self._prior = None
         return track
+
+    def _best_fit(self, features: Sequence[NeedleFeatures], starts: Sequence[np.ndarray],
+                  first_good: bool = False) -> Refined:
+        """The refinement from each start; the best: one that passes beats one that does
+        not, a determined one (no end seen: the slide is free) one that is not, then the
+        closer fit. ``first_good``: stop at the first start that fits well (tracking)."""
+        s = self.s
+        ref: Refined | None = None
+        best: tuple[bool, bool, float] | None = None
+        for T0 in starts:
+            r = self.refiner.refine(features, T0, occluder=self.occluder,
+                                    tip_only=s.require_swage)
+            key = (r.ok, r.sigma_position <= s.max_sigma_position
+                   and r.sigma_angle <= s.max_sigma_angle, -r.rms_px)
+            if best is None or key > best:
+                ref, best = r, key
+            if first_good and r.ok and r.rms_px <= 0.5 * self.refiner.s.max_rms_px:
+                break
+        assert ref is not None
+        return ref
 
     def _inject(self, pose: np.ndarray) -> None:
         """Reset a share of the particles to ``pose``, keeping the filter's twin
@@ -672,6 +720,19 @@ class NeedleTracker:
         f.t[idx] = pose[:3, 3]
         if f.last is not None:
             f.last = replace(f.last, pose=pose, pose_alt=pose @ _flip4(f.flip))
+
+
+def _slide(deg: float) -> np.ndarray:
+    """A turn of ``deg`` about frame N's z axis (the needle's axis through its centre):
+    the arc slides along itself."""
+    S = np.eye(4)
+    S[:3, :3] = Rotation.from_euler("z", deg, degrees=True).as_matrix()
+    return S
+
+
+#: The slides tried at initialisation besides each start itself (seed 002's needle:
+#: 8 deg is 1.8 mm of a 13 mm arc, about the end search's reach).
+_SLIDES = tuple(_slide(d) for d in (-16.0, -8.0, 8.0, 16.0))
 
 
 def _flip4(flip: np.ndarray) -> np.ndarray:

@@ -25,10 +25,12 @@ The steps (docs/needle.md, "Procedure"):
   (Fig. 6); the driver lifts and checks that it holds.
 - **ND**: the grasp the hand-off actually produced, seen by the tracker, is checked and
   the drive planned on it (eq. 3); approach, look again, then turn the needle about its
-  centre from the entry to past the exit.
+  centre from the entry to past the exit. From there on the tracker is told the tissue's
+  surface (a plane through the incision), which hides the needle's middle. The tracked
+  tip must end within ``placement_tolerance`` of the plan: checked here when the tracker
+  converges with the jaws still on the needle, else by NR once they have backed off.
 - **NR**: release, back off, track the needle standing in the tissue, grasp the tip part
-  that stands out of the exit. (The tracker does not yet know that the tissue hides the
-  needle's middle, so it rarely converges here: docs/needle.md.)
+  that stands out of the exit.
 - **NP**: turn the needle further along its own arc until the swage is out, then lift.
 
 Frames: the cell's reference frame (the endoscope's left channel, ``ref``) for
@@ -69,7 +71,13 @@ from oralnav.control.needle_grasp import (
     select_grasp,
     surface_grasps,
 )
-from oralnav.control.needle_tracker import FilterSettings, NeedleTrack, NeedleTracker, TrackSettings
+from oralnav.control.needle_tracker import (
+    FilterSettings,
+    NeedleTrack,
+    NeedleTracker,
+    TissuePlane,
+    TrackSettings,
+)
 from oralnav.safety.errors import StateError
 
 __all__ = ["STEPS", "NeedleCellPort", "NeedleProcedure", "ProcedureSettings", "StepResult"]
@@ -127,8 +135,9 @@ class ProcedureSettings:
     wire within about 1 mm of where they aim). ``grasp_margin``: the driving grasp is
     chosen this much (arc) further from the swage than the drive needs, and the pick-up
     grasp this much further from it than ``separation``, so that the grasps the arms
-    actually make still pass. Truth checks: ``placement_tolerance``
-    (entry and exit points against the plan).
+    actually make still pass. ``placement_tolerance``: how far the tracked tip may end
+    the drive from the plan's end (ND fails otherwise), and in the truth check how far
+    the entry and exit points may lie from the plan's.
     """
 
     depth: float = 0.005
@@ -371,6 +380,7 @@ class NeedleProcedure:
         self.picker: str | None = None
         self.holder: str | None = None        # who the procedure believes holds the needle
         self.G_TN: np.ndarray | None = None   # its grasp, as last seen by the tracker
+        self.tip_plan: np.ndarray | None = None  # where the drive should leave the tip (ref)
         self.in_tissue = False
 
     # -- public ---------------------------------------------------------------------------
@@ -817,16 +827,35 @@ class NeedleProcedure:
         for k, T in enumerate(drive.G_PT):
             self._move(B, T, f"drive pose {k + 1} of {len(drive.G_PT)}")
         self.in_tissue = True
+        # from here the tissue hides the needle's middle: the tracker must not take it
+        # for missing wire
+        self.tracker.set_occluder(TissuePlane(self.incision.mean(axis=0), self.normal))
         tr = self._look(self.cell.gripper_pose(B) @ invert(T_app))
         tip_plan = drive.G_PS @ drive.G_SN[-1]
         tip_plan = tip_plan[:3, :3] @ self.needle.tip + tip_plan[:3, 3]
         tip_seen = tr.pose[:3, :3] @ self.needle.tip + tr.pose[:3, 3]
+        # the drive is done when seen done, the tip out where the plan put it; while the
+        # jaws hide much of what the tissue leaves visible the tracker may not converge,
+        # and then NR checks it once the released gripper has backed off
+        self.tip_plan = tip_plan
+        if tr.converged:
+            self._check_exit(tr.pose, "drive")
         return {"grasp_phi_deg": round(math.degrees(choice.phi), 2),
                 "min_tip_clearance_mm": round(choice.min_tip_clearance * 1e3, 2),
                 "tip_seen_from_plan_mm": round(float(np.linalg.norm(tip_seen - tip_plan))
                                                * 1e3, 3),
                 "approach_look_converged": approach_look,
                 "tracked_after_drive": tr.converged}
+
+    def _check_exit(self, T_N: np.ndarray, what: str) -> None:
+        """Fail unless the tip of the needle tracked at ``T_N`` is within
+        ``placement_tolerance`` of where the drive planned it to end."""
+        assert self.tip_plan is not None
+        off = float(np.linalg.norm(T_N[:3, :3] @ self.needle.tip + T_N[:3, 3] - self.tip_plan))
+        if off > self.s.placement_tolerance:
+            raise _StepFailed("exit_missed", f"{what}: the tracked tip is {off * 1e3:.2f} mm "
+                                             f"from the planned end of the drive (tolerance "
+                                             f"{self.s.placement_tolerance * 1e3:.1f} mm)")
 
     def _drive_on(self, arm: str, T_N: np.ndarray) -> tuple[Drive, GraspChoice]:
         """The drive on the grasp the tracker sees, checked (eq. 3); refused when that grasp
@@ -874,6 +903,7 @@ class NeedleProcedure:
             raise _StepFailed("move_stopped", f"regrasp: the released gripper could not back "
                                               f"off ({exc})") from None
         T_N = self._converged("regrasp")
+        self._check_exit(T_N, "regrasp")
         phi_lo, phi_hi, out_mm = self._tip_part(T_N)
         if phi_hi < phi_lo:
             raise _refuse("no_grasp", f"regrasp: the tip stands {out_mm:.1f} mm out of the "
@@ -958,6 +988,7 @@ class NeedleProcedure:
             raise _StepFailed("still_in_tissue", f"pull: the tracked needle is still "
                                                  f"{-lowest * 1e3:.2f} mm in the tissue")
         self.in_tissue = False
+        self.tracker.set_occluder(None)
         return {"turn_deg": round(math.degrees(float(pull.betas[-1])), 1),
                 "lowest_point_mm": round(lowest * 1e3, 2)}
 

@@ -261,8 +261,8 @@ def test_measurements_skip_hidden_points_and_ends():
     """Occluder semantics, point by point: with the base part under the plane (the
     wire drawn whole, so only the plane can drop it), no crest is searched at a hidden
     point, the support counts only the visible points in the images, and the base's end
-    is not measured (the tip's is, alone); without the plane both ends are measured, as
-    a pair."""
+    is not measured (the tip's is, alone, paired with a phantom base); without the plane
+    both ends are measured, as a pair."""
     feats = _feats([LEFT, RIGHT])
     ref = PoseRefiner(NEEDLE, [LEFT, RIGHT])
     K = ref.points.shape[0]
@@ -280,11 +280,15 @@ def test_measurements_skip_hidden_points_and_ends():
     for idx, _, _, wt in meas:
         crest = idx[wt == 1.0]
         assert np.all(vis[crest]) and crest.size == np.count_nonzero(vis)
-        assert -1 not in idx and 0 not in idx
-        assert (K - 1) in idx[wt > 1.0]                 # the tip's end, alone
+        assert 0 not in idx
+        # the tip's end alone: paired with a base placed by the expected blur bias
+        # (so it measures the slide only), at half weight
+        assert np.count_nonzero(idx == -1) == 1
+        assert wt[idx == -1][0] == 0.5 * ref.s.end_weight
     meas, found, inside = ref._measure(ridges, ends, T_TRUE, 3.0)
     assert inside == 2 * K
-    assert all(-1 in idx for idx, _, _, _ in meas)
+    for idx, _, _, wt in meas:                           # both ends, a true pair
+        assert np.count_nonzero(idx == -1) == 1 and wt[idx == -1][0] == ref.s.end_weight
 
 
 def test_bad_occluder_is_refused():

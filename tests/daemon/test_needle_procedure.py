@@ -149,3 +149,23 @@ def test_step_rates_follow_the_papers_tables():
     assert r["steps"]["NH"] == pytest.approx(1 / 3)
     assert r["individual"]["NH"] == pytest.approx(1 / 2)
     assert r["individual"]["ND"] == pytest.approx(1.0)
+
+
+def test_a_drive_that_ends_away_from_the_plan_is_caught_before_the_regrasp():
+    """Issue 7, the drive's own check (no driving blind): the tracked tip must end within
+    the placement tolerance of the planned end of the drive. With the plan's end moved
+    3 mm (as if the drive had gone astray), NR fails with exit_missed once the released
+    gripper has backed off, before any arm reaches for the tip."""
+    cell, proc = _procedure(0, settings=ProcedureSettings())
+    for step in ("NG", "NH", "ND"):
+        r = proc.run(step)
+        assert r.ok, r
+    assert proc.tip_plan is not None
+    proc.tip_plan = proc.tip_plan + 0.003 * proc.normal
+    reached = []
+    move = cell.move
+    cell.move = lambda arm, T: (reached.append(arm), move(arm, T))[1]
+    nr = proc.run("NR")
+    assert not nr.ok and nr.cause == "exit_missed", nr
+    assert "from the planned end of the drive" in nr.detail
+    assert reached == [proc.driver]        # only the back-off of the released gripper
