@@ -848,14 +848,29 @@ class NeedleProcedure:
                 "tracked_after_drive": tr.converged}
 
     def _check_exit(self, T_N: np.ndarray, what: str) -> None:
-        """Fail unless the tip of the needle tracked at ``T_N`` is within
-        ``placement_tolerance`` of where the drive planned it to end."""
-        assert self.tip_plan is not None
-        off = float(np.linalg.norm(T_N[:3, :3] @ self.needle.tip + T_N[:3, 3] - self.tip_plan))
-        if off > self.s.placement_tolerance:
-            raise _StepFailed("exit_missed", f"{what}: the tracked tip is {off * 1e3:.2f} mm "
-                                             f"from the planned end of the drive (tolerance "
-                                             f"{self.s.placement_tolerance * 1e3:.1f} mm)")
+        """Fail unless the needle tracked at ``T_N`` crosses the tissue surface within
+        ``placement_tolerance`` of the planned entry and exit points and its tip is as
+        near where the drive planned it to end (the tracked arc's crossings of the
+        surface: the tissue hides what lies between them)."""
+        assert self.tip_plan is not None and self.geometry is not None
+        tol = self.s.placement_tolerance
+        phis = np.linspace(0.0, self.needle.arc, 721)
+        pts = self.needle.point(phis) @ T_N[:3, :3].T + T_N[:3, 3]
+        under = np.nonzero((pts - self.incision.mean(axis=0)) @ self.normal < 0.0)[0]
+        offs = {"tip": float(np.linalg.norm(pts[-1] - self.tip_plan))}
+        if under.size:
+            offs["entry"] = float(np.linalg.norm(pts[under[0]]
+                                                 - self._to_ref(self.geometry.entry)))
+            offs["exit"] = float(np.linalg.norm(pts[under[-1]]
+                                                - self._to_ref(self.geometry.exit)))
+        bad = {k: v for k, v in offs.items() if v > tol}
+        if not under.size or bad:
+            seen = ", ".join(f"{k} {v * 1e3:.2f} mm" for k, v in offs.items())
+            raise _StepFailed("exit_missed" if under.size else "not_in_tissue",
+                              f"{what}: the tracked needle does not lie where the drive "
+                              f"planned it ({seen} from the plan"
+                              + ("" if under.size else "; none of it under the surface")
+                              + f"; tolerance {tol * 1e3:.1f} mm)")
 
     def _drive_on(self, arm: str, T_N: np.ndarray) -> tuple[Drive, GraspChoice]:
         """The drive on the grasp the tracker sees, checked (eq. 3); refused when that grasp
@@ -927,7 +942,8 @@ class NeedleProcedure:
                     return self._regrasp(arm, g, pull, phi, out_mm)
                 last = f"{arm}: {why}"
         raise _refuse("out_of_reach", f"regrasp: no arm reaches a grasp of the tip that it "
-                                      f"can pull with ({last})")
+                                      f"can pull with "
+                                      f"({last or 'no grasp of the tip part clears the tissue'})")
 
     def _tip_part(self, T_N: np.ndarray) -> tuple[float, float, float]:
         """The tip part out of the tissue at tracked pose ``T_N``: the grasp may go from
