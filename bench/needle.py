@@ -18,7 +18,8 @@ Failures are classified by the first failed step and its cause: a refusal before
 (``refused_*``: the tracker had not converged, nothing reachable, ...), a failure the
 procedure saw (``grasp_missed``, ``lost_track``, ``move_stopped``, ...), or
 ``undetected``: the procedure believed the step done and the truth says otherwise (the
-dangerous kind).
+dangerous kind), unless the next step caught it before moving on it
+(``caught_by_NR_exit_missed``: the drive, checked once the jaws were off the needle).
 
 Writes ``needle.json``: ``{"trials", "overall", "steps": {step: overall rate}}`` (Table
 II's first row, as the issue asks), the individual rates (Table II's second row), the
@@ -34,6 +35,7 @@ import platform
 import sys
 import time
 from collections import Counter
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -48,9 +50,36 @@ PAPER = {"trials": 20, "overall": 0.70,
                         "NP": 14 / 14}}
 
 
+#: Causes by which a step reports that an earlier one, which believed itself done, failed.
+_LATE_CHECKS = ("exit_missed", "not_in_tissue")
+
+
+def first_failure(results: Sequence[Any]) -> tuple[dict[str, bool | None], dict | None]:
+    """Per step, whether it succeeded by the procedure and the truth (``None``: not
+    reached), and the first failure ``{"step", "cause", "detail", "truth"}`` (``None``
+    when all succeeded); ``results``: the procedure's :class:`StepResult` list."""
+    from oralnav.daemon.needle_procedure import STEPS
+
+    steps: dict[str, bool | None] = dict.fromkeys(STEPS)
+    failure = None
+    for k, r in enumerate(results):
+        steps[r.step] = bool(r.ok and r.truth_ok)
+        if failure is None and not steps[r.step]:
+            cause = r.cause if not r.ok else "undetected"
+            later = results[k + 1] if k + 1 < len(results) else None
+            if r.ok and later is not None and later.cause in _LATE_CHECKS:
+                # the step's own check could not run; the next step's caught it before
+                # moving on it (the drive checked after the back-off)
+                cause = f"caught_by_{later.step}_{later.cause}"
+            failure = {"step": r.step, "cause": cause,
+                       "detail": r.detail if not r.ok else r.truth_detail,
+                       "truth": r.truth_detail}
+    return steps, failure
+
+
 def run_trial(seed: int) -> dict[str, Any]:
     """One trial: the procedure on ``trial_cell(seed)``; its record (JSON-able)."""
-    from oralnav.daemon.needle_procedure import STEPS, NeedleProcedure
+    from oralnav.daemon.needle_procedure import NeedleProcedure
     from oralnav.sim.needle_trials import trial_cell
 
     t0 = time.perf_counter()
@@ -58,15 +87,7 @@ def run_trial(seed: int) -> dict[str, Any]:
     proc = NeedleProcedure(cell, info.incision, info.surface_normal,
                            surface_outline=info.surface_outline)
     results = proc.run_all()
-    steps: dict[str, bool | None] = dict.fromkeys(STEPS)
-    failure = None
-    for r in results:
-        steps[r.step] = bool(r.ok and r.truth_ok)
-        if failure is None and not steps[r.step]:
-            cause = r.cause if not r.ok else "undetected"
-            failure = {"step": r.step, "cause": cause,
-                       "detail": r.detail if not r.ok else r.truth_detail,
-                       "truth": r.truth_detail}
+    steps, failure = first_failure(results)
     return {"seed": seed, "steps": steps, "failure": failure,
             "seconds": round(time.perf_counter() - t0, 2),
             "results": [r.to_json() for r in results]}

@@ -14,7 +14,13 @@ import numpy as np
 import pytest
 
 from oralnav.control.errors import NeedleError
-from oralnav.daemon.needle_procedure import STEPS, NeedleProcedure, ProcedureSettings, step_rates
+from oralnav.daemon.needle_procedure import (
+    STEPS,
+    NeedleProcedure,
+    ProcedureSettings,
+    StepResult,
+    step_rates,
+)
 from oralnav.safety.errors import StateError
 from oralnav.sim.needle_cell import ArmReach, NeedleCell
 from oralnav.sim.needle_trials import trial_cell, trial_scene
@@ -169,3 +175,25 @@ def test_a_drive_that_ends_away_from_the_plan_is_caught_before_the_regrasp():
     assert not nr.ok and nr.cause == "exit_missed", nr
     assert "does not lie where the drive planned it" in nr.detail and "(tip " in nr.detail
     assert reached == [proc.driver]        # only the back-off of the released gripper
+
+
+def test_bench_classes_a_drive_caught_by_the_regrasp_apart_from_undetected():
+    """Issue 7, failures classified by cause: a step the procedure believed done whose
+    truth failed is `undetected`, unless the next step caught it before moving on it
+    (`caught_by_NR_exit_missed`); a refused or failed step keeps its own cause."""
+    from oralnav.bench.needle import first_failure
+
+    def res(step, ok, truth_ok, cause=""):
+        return StepResult(step, ok, False, cause, "detail", {}, truth_ok, "truth", 0.0)
+
+    ok3 = [res("NG", True, True), res("NH", True, True)]
+    steps, f = first_failure([*ok3, res("ND", True, False)])
+    assert f["step"] == "ND" and f["cause"] == "undetected" and steps["NR"] is None
+    _, f = first_failure([*ok3, res("ND", True, False), res("NR", False, False, "exit_missed")])
+    assert f["step"] == "ND" and f["cause"] == "caught_by_NR_exit_missed"
+    _, f = first_failure([*ok3, res("ND", True, False), res("NR", False, False, "lost_track")])
+    assert f["cause"] == "undetected"
+    steps, f = first_failure([res("NG", False, False, "refused_out_of_reach")])
+    assert f["cause"] == "refused_out_of_reach" and steps == {"NG": False, "NH": None,
+                                                            "ND": None, "NR": None, "NP": None}
+    assert first_failure([res(s, True, True) for s in STEPS])[1] is None
