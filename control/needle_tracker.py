@@ -574,7 +574,6 @@ class NeedleTracker:
         self.s = settings or TrackSettings()
         self.needle, self.cameras = needle, tuple(cameras)
         self.last: NeedleTrack | None = None
-        self._moved: np.ndarray | None = None
         # the base/tip decision carried along a continuing track: the last pose moved by
         # the motion since (``_prior``), and whether its base and tip were decided
         self._prior: np.ndarray | None = None
@@ -619,14 +618,16 @@ class NeedleTracker:
         if self.last is not None:
             T = self.last.pose
             self._prior = T if delta is None else np.asarray(delta, dtype=float) @ T
-            if self.last.refined is not None and self.last.refined.ok:
-                self._moved = self._prior
 
     def update(self, features: Sequence[NeedleFeatures]) -> NeedleTrack:
         """Measurement update on the current images, then the finish, started from the
         last refined pose (moved) and from the filter's estimate."""
         est = self.filter.update([f.distance for f in features])
-        starts = ([self._moved] if self._moved is not None else []) + [est.pose]
+        last = self.last
+        # the last pose moved with the gripper, when it was a refined one
+        moved = (self._prior is not None and last is not None and last.refined is not None
+                 and last.refined.ok)
+        starts = ([self._prior] if moved else []) + [est.pose]
         return self._finish(features, est, starts)
 
     def _finish(self, features: Sequence[NeedleFeatures], est: NeedleEstimate,
@@ -683,7 +684,6 @@ class NeedleTracker:
         elif s.require_swage and carried and swage < -s.swage_min:
             self._sided = False       # decide afresh on the next update's evidence
         self.last = track
-        self._moved = None
         self._prior = None
         return track
 

@@ -847,6 +847,14 @@ class NeedleProcedure:
                 "approach_look_converged": approach_look,
                 "tracked_after_drive": tr.converged}
 
+    def _arc_under(self, T_N: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The arc of the needle at ``T_N`` in 721 points: their angles (rad), their
+        positions (ref, m) and the indices of those under the tissue surface."""
+        phis = np.linspace(0.0, self.needle.arc, 721)
+        pts = self.needle.point(phis) @ T_N[:3, :3].T + T_N[:3, 3]
+        under = np.nonzero((pts - self.incision.mean(axis=0)) @ self.normal < 0.0)[0]
+        return phis, pts, under
+
     def _check_exit(self, T_N: np.ndarray, what: str) -> None:
         """Fail unless the needle tracked at ``T_N`` crosses the tissue surface within
         ``placement_tolerance`` of the planned entry and exit points and its tip is as
@@ -854,9 +862,7 @@ class NeedleProcedure:
         surface: the tissue hides what lies between them)."""
         assert self.tip_plan is not None and self.geometry is not None
         tol = self.s.placement_tolerance
-        phis = np.linspace(0.0, self.needle.arc, 721)
-        pts = self.needle.point(phis) @ T_N[:3, :3].T + T_N[:3, 3]
-        under = np.nonzero((pts - self.incision.mean(axis=0)) @ self.normal < 0.0)[0]
+        _, pts, under = self._arc_under(T_N)
         offs = {"tip": float(np.linalg.norm(pts[-1] - self.tip_plan))}
         if under.size:
             offs["entry"] = float(np.linalg.norm(pts[under[0]]
@@ -951,10 +957,7 @@ class NeedleProcedure:
         out along the arc (mm)."""
         s = self.s
         r, arc = self.needle.radius, self.needle.arc
-        phis = np.linspace(0.0, arc, 721)
-        pts = self.needle.point(phis) @ T_N[:3, :3].T + T_N[:3, 3]
-        height = (pts - self.incision.mean(axis=0)) @ self.normal
-        under = np.nonzero(height < 0.0)[0]
+        phis, _, under = self._arc_under(T_N)
         cross = phis[under[-1]] if under.size else 0.0
         return (cross + s.regrasp_exit_margin / r, arc - s.regrasp_tip_margin / r,
                 (arc - cross) * r * 1e3)
