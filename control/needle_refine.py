@@ -40,6 +40,7 @@ from scipy.spatial.transform import Rotation
 
 from .camera import CameraModel
 from .errors import NeedleError
+from .geometry import rotation_angle
 from .needle import Needle
 from .needle_features import NeedleFeatures
 
@@ -103,6 +104,59 @@ class TissuePlane:
                                   "toward the cameras")
 
 
+@dataclass(frozen=True, eq=False)
+class ToolCylinder:
+    """A part of an instrument that hides what lies behind it (a jaw pair, a shaft): a
+    cylinder of ``radius`` (m) about the segment from ``a`` to ``b`` (3,), reference frame.
+
+    A needle held in the jaws, or with a shaft across it, shows less wire than its model;
+    the refinement must neither look for what the tool covers nor count it as missing
+    (:meth:`PoseRefiner.refine`, ``tools``)."""
+
+    a: np.ndarray
+    b: np.ndarray
+    radius: float
+
+    def __post_init__(self) -> None:
+        for what in ("a", "b"):
+            v = np.array(getattr(self, what), dtype=float).reshape(-1)
+            if v.shape != (3,) or not np.all(np.isfinite(v)):
+                raise NeedleError(f"tool cylinder: {what} must be a finite 3-vector, got "
+                                  f"{getattr(self, what)!r}")
+            v.flags.writeable = False
+            object.__setattr__(self, what, v)
+        if not (math.isfinite(self.radius) and self.radius > 0):
+            raise NeedleError(f"tool cylinder: radius must be > 0 m, got {self.radius}")
+
+    def hides(self, cam: CameraModel, uv: np.ndarray, depth: np.ndarray | None = None
+              ) -> np.ndarray:
+        """Which image points ``uv`` (k, 2, px) of ``cam`` lie within the cylinder's image
+        (cut 1 cm in front of the camera). With ``depth`` (k,), the points' distances
+        along the optical axis (m), only those the cylinder's near side is in front of;
+        without it depth is ignored and a point in front of the tool counts as hidden too
+        (what a planner that must not overrate a view wants)."""
+        uv = np.asarray(uv, dtype=float)
+        A = cam.T_cam_ref[:3, :3] @ np.stack([self.a, self.b]).T + cam.T_cam_ref[:3, 3:4]
+        za, zb = A[2]
+        near = 0.01
+        if za <= near and zb <= near:
+            return np.zeros(len(uv), dtype=bool)
+        if za <= near or zb <= near:
+            cut = A[:, 0] + (near - za) / (zb - za) * (A[:, 1] - A[:, 0])
+            A = np.stack([A[:, 0] if za > near else cut, A[:, 1] if zb > near else cut], 1)
+        ends = cam.project(A.T)
+        d = ends[1] - ends[0]
+        L2 = float(d @ d)
+        t = np.clip(((uv - ends[0]) @ d) / L2, 0.0, 1.0) if L2 > 0 else np.zeros(len(uv))
+        dist = np.linalg.norm(uv - (ends[0] + t[:, None] * d), axis=1)
+        # the image of a cylinder widens toward the camera: 1/z runs linearly along it
+        inv_z = (1.0 - t) / A[2, 0] + t / A[2, 1]
+        hidden = dist <= cam.K[0, 0] * self.radius * inv_z
+        if depth is not None:
+            hidden &= 1.0 / inv_z - self.radius < np.asarray(depth, dtype=float)
+        return hidden
+
+
 @dataclass(frozen=True)
 class RefineSettings:
     """Refinement settings. Pixels px.
@@ -147,7 +201,10 @@ class Refined:
     tissue, when an occluder is given) that found it;
     ``sigma_position`` (m) and ``sigma_angle`` (rad): one standard deviation of the
     needle centre's position and of its orientation from the pose covariance (largest
-    axis); ``ok``: ``rms_px`` and ``support`` within the settings' bounds.
+    axis); ``sigma_slide`` (rad): that of the turn about the needle's own axis (the slide
+    along the arc, which only the ends measure), ``sigma_slide_seen`` the same from these
+    images alone (without the slide prior); ``ok``: ``rms_px`` and ``support`` within
+    the settings' bounds.
     """
 
     pose: np.ndarray
@@ -156,6 +213,8 @@ class Refined:
     sigma_position: float
     sigma_angle: float
     ok: bool
+    sigma_slide: float = math.inf
+    sigma_slide_seen: float = math.inf
 
 
 #: Forward-difference step of the refinement's Jacobian (rad, m).
@@ -307,7 +366,8 @@ class PoseRefiner:
         return float(offs[k - 1] + s.step_px * (a - 0.5 * on) / max(a - b, 1e-9))
 
     def _measure(self, ridges: list[np.ndarray], ends: list[np.ndarray], T: np.ndarray,
-                 half: float, occluder: TissuePlane | None = None, tip_only: bool = False
+                 half: float, occluder: TissuePlane | None = None, tip_only: bool = False,
+                 tools: Sequence[ToolCylinder] = ()
                  ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
                             int, int]:
         """Per camera, the measurements ``(point index, image direction, target pixel,
@@ -315,17 +375,25 @@ class PoseRefiner:
         end along the tangent at the base and the tip (weighted as ``end_weight`` points:
         sliding along itself is the one motion of an arc that its crest cannot see).
         Also the number of sample points that found the crest and of those in the
-        images. Points under ``occluder`` are not searched and not counted in the
-        images; an end under it gives no end measurement."""
+        images. Points under ``occluder`` or behind one of ``tools`` (in that view) are
+        not searched and not counted in the images; a hidden end gives no end
+        measurement."""
         s = self.s
         K = self.points.shape[0]
-        vis = None
+        pts = self.points @ T[:3, :3].T + T[:3, 3]
+        seen = None
         if occluder is not None:
-            vis = occluder.visible(self.points @ T[:3, :3].T + T[:3, 3],
-                                   0.5 * self.needle.wire_diameter)
+            seen = occluder.visible(pts, 0.5 * self.needle.wire_diameter)
         out, found_n, inside = [], 0, 0
         for ridge, endmap, (uv, n, tg), cam in zip(ridges, ends, self._geometry(T),
                                                    self.cameras, strict=True):
+            vis = seen
+            if tools:
+                depth = pts @ cam.T_cam_ref[2, :3] + cam.T_cam_ref[2, 3]
+                hidden = np.zeros(K, dtype=bool)
+                for tool in tools:
+                    hidden |= tool.hides(cam, uv, depth)
+                vis = ~hidden if vis is None else vis & ~hidden
             d, found = self._peaks(ridge, uv, n, half, vis)
             found &= np.all(np.isfinite(n), axis=1)
             idx = [np.nonzero(found)[0]]
@@ -379,7 +447,9 @@ class PoseRefiner:
         return out, found_n, inside
 
     def refine(self, features: Sequence[NeedleFeatures], T: np.ndarray, *,
-               occluder: TissuePlane | None = None, tip_only: bool = False) -> Refined:
+               occluder: TissuePlane | None = None, tip_only: bool = False,
+               tools: Sequence[ToolCylinder] = (),
+               slide_prior: tuple[np.ndarray, float] | None = None) -> Refined:
         """Refine ``T`` (``T_ref_N``) on the cameras' features (:func:`.needle_features.
         feature_maps`, one per camera, same order): the crest on ``ridge``, the ends on
         ``ends``. ``occluder``: the tissue's surface when the needle may be in it (what
@@ -387,8 +457,19 @@ class PoseRefiner:
         out); visibility is judged anew at each round's pose. ``tip_only``: the base's end
         is not measured (a threaded needle: the thread continues the wire past the swage,
         and where it leaves the tangent looks like an end), so the tip alone holds the
-        slide along the arc."""
+        slide along the arc. ``tools``: the instruments' parts in view (jaws, shafts),
+        which hide what lies behind them in each view as the tissue does.
+        ``slide_prior``: ``(T_prior, sigma)``, what is known of the slide along the arc
+        before these images (a pose ``T_ref_N`` and the one-sigma of its turn about the
+        needle's axis, rad; a needle held in closed jaws or standing in tissue cannot
+        slide far): weighed with the ends' measurement, it keeps the slide determined
+        while the jaws or the tissue hide both ends. Ignored when ``T_prior`` is the
+        other twin (turned more than 90 deg from ``T``)."""
         s = self.s
+        for tool in tools:
+            if not isinstance(tool, ToolCylinder):
+                raise NeedleError(f"tools must be ToolCylinder parts, got "
+                                  f"{type(tool).__name__}")
         if occluder is not None:
             if not isinstance(occluder, TissuePlane):
                 raise NeedleError(f"occluder must be a TissuePlane or None, got "
@@ -406,9 +487,21 @@ class PoseRefiner:
         ridges = [np.asarray(f.ridge, dtype=np.float32) for f in features]
         ends = [np.asarray(f.ends, dtype=np.float32) for f in features]
         T = np.asarray(T, dtype=float).copy()
+        R_prior, info_prior = None, 0.0
+        if slide_prior is not None:
+            Tp, sp = slide_prior
+            Tp = np.asarray(Tp, dtype=float)
+            if not (Tp.shape == (4, 4) and np.all(np.isfinite(Tp)) and sp > 0):
+                raise NeedleError(f"slide prior: need a finite 4x4 pose and sigma > 0 rad, "
+                                  f"got shape {Tp.shape} and {sp}")
+            if math.isfinite(sp) and rotation_angle(Tp[:3, :3], T[:3, :3]) < 0.5 * math.pi:
+                R_prior, info_prior = Tp[:3, :3], 1.0 / (sp * sp)
         rms, support, H = math.inf, 0.0, None
+        e_slide = np.zeros(6)
+        e_slide[2] = 1.0
         for half in (*s.search_px, s.search_px[-1]):
-            meas, found_n, inside = self._measure(ridges, ends, T, half, occluder, tip_only)
+            meas, found_n, inside = self._measure(ridges, ends, T, half, occluder, tip_only,
+                                                  tools)
             support = found_n / max(inside, 1)
             if found_n < 8:
                 H = None
@@ -426,22 +519,43 @@ class PoseRefiner:
                 H = (J * w[:, None]).T @ J
                 g = (J * w[:, None]).T @ r
                 rms = float(np.sqrt(np.sum(w * r * r) / max(np.sum(w), 1e-12)))
+                Hs, gs = H, g
+                if R_prior is not None:
+                    # the prior in the measurements' units (px^2 per rad^2 at this RMS):
+                    # the turn about N's z from the prior pose, which the local
+                    # parameter 2 changes one for one
+                    k = max(rms, 0.1) ** 2 * info_prior
+                    slide = float(Rotation.from_matrix(R_prior.T @ T[:3, :3]).as_rotvec()[2])
+                    Hs = H + k * np.outer(e_slide, e_slide)
+                    gs = g + k * slide * e_slide
                 # a touch of damping keeps a weak direction (a single view's depth) from
-                # running away before the next search
-                step = np.linalg.solve(H + 1e-6 * np.trace(H) / 6 * np.eye(6), -g)
+                # running away before the next search; the slide needs none under a
+                # prior (which holds it), and damping there would only slow the prior
+                damp = 1e-6 * np.trace(H) / 6 * np.eye(6)
+                if R_prior is not None:
+                    damp[2, 2] = 0.0
+                step = np.linalg.solve(Hs + damp, -gs)
                 T = _perturb(T, step)
-        sig_a = sig_p = math.inf
+        sig_a = sig_p = sig_s = sig_seen = math.inf
         if H is not None:
             try:
+                seen = np.linalg.inv(H / max(rms, 0.1) ** 2)
+                sig_seen = math.sqrt(max(float(seen[2, 2]), 0.0))
+            except np.linalg.LinAlgError:
+                pass
+            try:
                 # the last round's normal equations; residual scale floored at 0.1 px so a
-                # perfect synthetic fit does not claim a perfect pose
-                cov = np.linalg.inv(H) * max(rms, 0.1) ** 2
+                # perfect synthetic fit does not claim a perfect pose; plus the prior's
+                # information on the slide
+                info = H / max(rms, 0.1) ** 2 + info_prior * np.outer(e_slide, e_slide)
+                cov = np.linalg.inv(info)
                 sig_a = math.sqrt(max(float(np.linalg.eigvalsh(cov[:3, :3]).max()), 0.0))
                 sig_p = math.sqrt(max(float(np.linalg.eigvalsh(cov[3:, 3:]).max()), 0.0))
+                sig_s = math.sqrt(max(float(cov[2, 2]), 0.0))
             except np.linalg.LinAlgError:
                 pass
         ok = bool(rms <= s.max_rms_px and support >= s.min_support)
-        return Refined(T, rms, support, sig_p, sig_a, ok)
+        return Refined(T, rms, support, sig_p, sig_a, ok, sig_s, sig_seen)
 
     def _linearise(self, T: np.ndarray,
                    meas: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
@@ -486,7 +600,7 @@ def _pair(uv: np.ndarray, d: np.ndarray, g: np.ndarray) -> float:
 def swage_evidence(needle: Needle, cameras: Sequence[CameraModel],
                    ridges: Sequence[np.ndarray], T: np.ndarray, *,
                    span: tuple[float, float] = (0.002, 0.008), points: int = 12,
-                   cone: float = 0.15) -> float:
+                   cone: float = 0.15, tools: Sequence[ToolCylinder] = ()) -> float:
     """How much more ridge lies beyond the base than beyond the tip (DN, mean over the
     views): the suture thread leaves the swage, nothing leaves the tip. Positive: ``T``
     has the base where the thread is; negative: the twin (base and tip swapped) is
@@ -499,6 +613,8 @@ def swage_evidence(needle: Needle, cameras: Sequence[CameraModel],
     beyond the first end and the thread going on beyond the other. At each distance
     ``d`` the thread may have bent off the tangent: the ridge's highest value across a
     cross of half-width ``cone * d`` (in the needle's plane and out of it) is taken.
+    Samples behind one of ``tools`` in a view are not read there: a jaw beside an end
+    is a ridge too, and would pass for the thread.
     """
     d = np.linspace(span[0], span[1], points)
     lat = np.linspace(-cone, cone, 5)
@@ -517,6 +633,10 @@ def swage_evidence(needle: Needle, cameras: Sequence[CameraModel],
         for pts in ends:
             uv = cam.project_from(Tc, pts).astype(np.float32)
             ok = np.all(np.isfinite(uv), axis=1) & cam.in_image(uv)
+            if tools:
+                depth = pts @ Tc[2, :3] + Tc[2, 3]
+                for tool in tools:
+                    ok &= ~tool.hides(cam, uv, depth)
             v = cv2.remap(np.asarray(ridge, np.float32), uv[:, 0:1], uv[:, 1:2],
                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                           borderValue=0.0)[:, 0].astype(float)

@@ -55,10 +55,17 @@ from .errors import NeedleError
 from .geometry import nearest_rigid, rotation_angle
 from .needle import Needle
 from .needle_features import NeedleFeatures
-from .needle_refine import PoseRefiner, Refined, RefineSettings, TissuePlane, swage_evidence
+from .needle_refine import (
+    PoseRefiner,
+    Refined,
+    RefineSettings,
+    TissuePlane,
+    ToolCylinder,
+    swage_evidence,
+)
 
 __all__ = ["FilterSettings", "NeedleEstimate", "NeedleFilter", "NeedleTrack", "NeedleTracker",
-           "TissuePlane", "TrackSettings", "mirror_tilt"]
+           "TissuePlane", "ToolCylinder", "TrackSettings", "mirror_tilt"]
 
 
 @dataclass(frozen=True)
@@ -524,7 +531,10 @@ class TrackSettings:
     on the twin would push the swage first); off only for a needle without a thread. A
     continuing track (updates after a converged one, on the same twin) carries its
     decision while no update shows the thread decisively at the other end; one that
-    does puts the track in doubt until fresh evidence decides again.
+    does puts the track in doubt until fresh evidence decides again. ``slide_drift``
+    (rad): how far a needle whose motion is known (held in closed jaws, or standing in
+    tissue) may slide along its arc from one update to the next; the slide the last
+    update saw, so widened, holds the slide while the jaws or the tissue hide the ends.
     """
 
     max_sigma_position: float = 0.0003
@@ -533,6 +543,7 @@ class TrackSettings:
     inject: float = 0.2
     swage_min: float = 8.0
     require_swage: bool = True      # a threaded needle: base and tip must be told apart
+    slide_drift: float = math.radians(1.0)
 
 
 @dataclass(frozen=True)
@@ -578,6 +589,20 @@ class NeedleTracker:
         # the motion since (``_prior``), and whether its base and tip were decided
         self._prior: np.ndarray | None = None
         self._sided = False
+        # what the last refined update knew of the slide, widened by the known motion
+        # (rad; None: the motion was not known, Brownian)
+        self._slide_sigma: float | None = None
+        self.tools: tuple[ToolCylinder, ...] = ()
+
+    def set_tools(self, tools: Sequence[ToolCylinder]) -> None:
+        """The instruments' parts in view now (jaws, shafts; reference frame): the
+        refinement neither looks for nor misses the wire behind them, from the next
+        update on. Give them anew whenever a gripper moved."""
+        tools = tuple(tools)
+        for t in tools:
+            if not isinstance(t, ToolCylinder):
+                raise NeedleError(f"tools must be ToolCylinder parts, got {type(t).__name__}")
+        self.tools = tools
 
     @property
     def occluder(self) -> TissuePlane | None:
@@ -598,8 +623,8 @@ class NeedleTracker:
         (:func:`mirror_tilt`): a swarm that found both tilts of the outline averages to
         neither, and a short stereo baseline barely separates them."""
         self.last = None
-        self._moved = None
         self._prior = None
+        self._slide_sigma = None
         self._sided = False
         est = self.filter.initialize([f.distance for f in features], depth_range)
         starts = [est.pose] + ([est.best] if est.best is not None else [])
@@ -615,9 +640,13 @@ class NeedleTracker:
         """Motion update: :meth:`NeedleFilter.predict`; the last refined pose moves with
         the gripper too (it is the refinement's first start next update)."""
         self.filter.predict(delta)
+        self._slide_sigma = None
         if self.last is not None:
             T = self.last.pose
             self._prior = T if delta is None else np.asarray(delta, dtype=float) @ T
+            r = self.last.refined
+            if delta is not None and r is not None and r.ok and math.isfinite(r.sigma_slide):
+                self._slide_sigma = math.hypot(r.sigma_slide, self.s.slide_drift)
 
     def update(self, features: Sequence[NeedleFeatures]) -> NeedleTrack:
         """Measurement update on the current images, then the finish, started from the
@@ -636,7 +665,8 @@ class NeedleTracker:
         ridges = [f.ridge for f in features]
         ref = self._best_fit(features, starts, first_good=len(starts) <= 2)
         pose = ref.pose if ref.ok else est.pose
-        swage = swage_evidence(self.needle, self.cameras, ridges, pose)
+        swage = swage_evidence(self.needle, self.cameras, ridges, pose,
+                               tools=self.tools)
         # a continuing track keeps the base/tip decision it made on decisive evidence:
         # the thread hides behind the jaws or the tissue, or lies edge-on, for updates
         # on end, while the filter's swarm and the refinement stay on the same twin
@@ -657,8 +687,13 @@ class NeedleTracker:
                 again = self._best_fit(features, [twin] + [twin @ S for S in _SLIDES])
                 if again.ok:
                     twin_ref, twin = again, again.pose
-            twin_swage = swage_evidence(self.needle, self.cameras, ridges, twin)
-            if twin_swage > swage and (not carried or twin_swage >= s.swage_min):
+            twin_swage = swage_evidence(self.needle, self.cameras, ridges, twin,
+                                         tools=self.tools)
+            # a twin whose slide the views leave free (its tip hidden) can slide until
+            # its base lies on the wire itself, which then reads as the thread: its
+            # evidence overturns nothing carried
+            if twin_swage > swage and (not carried or (twin_swage >= s.swage_min
+                                                       and self._determined(twin_ref))):
                 ref, pose, swage = twin_ref, twin, twin_swage
                 carried = False
         if ref.ok:
@@ -687,6 +722,12 @@ class NeedleTracker:
         self._prior = None
         return track
 
+    def _determined(self, r: Refined) -> bool:
+        """Whether a refinement passed and its pose is within the uncertainty bounds."""
+        s = self.s
+        return (r.ok and r.sigma_position <= s.max_sigma_position
+                and r.sigma_angle <= s.max_sigma_angle)
+
     def _best_fit(self, features: Sequence[NeedleFeatures], starts: Sequence[np.ndarray],
                   first_good: bool = False) -> Refined:
         """The refinement from each start; the best: one that passes beats one that does
@@ -695,11 +736,13 @@ class NeedleTracker:
         s = self.s
         ref: Refined | None = None
         best: tuple[bool, bool, float] | None = None
+        prior = (None if self._prior is None or self._slide_sigma is None
+                 else (self._prior, self._slide_sigma))
         for T0 in starts:
             r = self.refiner.refine(features, T0, occluder=self.occluder,
-                                    tip_only=s.require_swage)
-            key = (r.ok, r.sigma_position <= s.max_sigma_position
-                   and r.sigma_angle <= s.max_sigma_angle, -r.rms_px)
+                                    tip_only=s.require_swage, tools=self.tools,
+                                    slide_prior=prior)
+            key = (r.ok, self._determined(r), -r.rms_px)
             if best is None or key > best:
                 ref, best = r, key
             if first_good and r.ok and r.rms_px <= 0.5 * self.refiner.s.max_rms_px:

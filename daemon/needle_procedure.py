@@ -76,6 +76,7 @@ from oralnav.control.needle_tracker import (
     NeedleTrack,
     NeedleTracker,
     TissuePlane,
+    ToolCylinder,
     TrackSettings,
 )
 from oralnav.safety.errors import StateError
@@ -159,11 +160,14 @@ class ProcedureSettings:
     max_view_angle: float = math.radians(60.0)
     tool_radius: float = 0.003
     tool_length: float = 0.2
-    jaw_radius: float = 0.0015
+    jaw_radius: float = 0.0022
     jaw_length: float = 0.010
     regrasp_exit_margin: float = 0.002
-    regrasp_tip_margin: float = 0.0015
-    regrasp_turn_check: float = math.radians(5.0)
+    regrasp_tip_margin: float = 0.0035
+    regrasp_turn_check: float = math.radians(10.0)
+    regrasp_points: int = 7
+    replan_shift: float = 0.0003
+    replan_turn: float = math.radians(1.5)
     particles: int = 3000
     updates: int = 3
     init_updates: int = 3
@@ -183,8 +187,14 @@ class ProcedureSettings:
                                                min_shaft_elevation=math.radians(-15.0),
                                                approach_elevation=math.radians(5.0))
     pickup_grasp: SurfaceGraspSettings = SurfaceGraspSettings()
-    regrasp: SurfaceGraspSettings = SurfaceGraspSettings(min_elevation=math.radians(20.0),
-                                                         min_tip_height=0.0005)
+    # the tip part stands steeply out of the exit, and a jaw square to the wire then holds
+    # the shaft low: the regrasp takes shafts down to 5 deg above the flat pad (the shaft
+    # rises away from it), the wire at least 1.5 mm up so the jaws' lower edge (half
+    # their 2.5 mm width below it) stays off the surface; fine gripper angles, since
+    # the few that fit are narrow
+    regrasp: SurfaceGraspSettings = SurfaceGraspSettings(min_elevation=math.radians(5.0),
+                                                         min_tip_height=0.0015,
+                                                         w2_steps=72)
 
     def __post_init__(self) -> None:
         for name in ("overshoot", "approach", "lift", "retreat", "hold_check",
@@ -249,9 +259,17 @@ def _translation(v: np.ndarray) -> np.ndarray:
     return make_transform(t=np.asarray(v, dtype=float))
 
 
-def _back_off(T: np.ndarray, d: float) -> np.ndarray:
-    """``T`` moved ``d`` (m) along its own -z (out of the jaws' way)."""
-    return T @ make_transform(t=[0.0, 0.0, -d])
+def _back_off(T: np.ndarray, d: float, tilt: float = 0.0) -> np.ndarray:
+    """``T`` moved ``d`` (m) along its own -z (out of the jaws' way), or along -z turned
+    by ``tilt`` (rad) about its y: still in the plane of the jaws' faces, so open jaws
+    slide off a wire that lies across them without dragging it (the wire runs along x,
+    the jaws close along y)."""
+    return T @ make_transform(t=[-d * math.sin(tilt), 0.0, -d * math.cos(tilt)])
+
+
+#: Directions an opened gripper may back off the wire by (rad about its y, from -z):
+#: straight first, then ever more aslant, up to 60 deg (the jaws still clear the wire).
+_BACK_OFF_TILTS = tuple(math.radians(a) for a in (0, 20, -20, 40, -40, 60, -60))
 
 
 def _turn_about(axis: np.ndarray, angle: float, point: np.ndarray) -> np.ndarray:
@@ -463,6 +481,9 @@ class NeedleProcedure:
         or Brownian motion (free)."""
         s = self.s
         still = np.eye(4) if static else None
+        # the grippers where they are now hide part of the needle
+        self.tracker.set_tools([part for a in self.arms
+                                for part in self._tool_parts(self.cell.gripper_pose(a))])
         if init:
             tr = self.tracker.initialize(self._features(), self._depth_range)
             for _ in range(s.init_updates):
@@ -506,9 +527,16 @@ class NeedleProcedure:
 
     def _verify_hold(self, arm: str, T_goal: np.ndarray, what: str) -> np.ndarray:
         """Move ``arm`` (which should hold the needle) to ``T_goal`` and look: the needle
-        must have moved with the jaws. Returns the tracked ``T_ref_N``."""
+        must have moved with the jaws. Returns the tracked ``T_ref_N``.
+
+        The jaws just closed, and closing centres the wire between them (it moves the
+        needle by up to half the open gap): the pose to compare with is a fresh look in
+        the closed jaws, not the one the grasp was aimed on, when that look converges."""
         assert self.track is not None
         before = self.track.pose
+        tr = self._look()
+        if tr.converged:
+            before = tr.pose
         T0 = self.cell.gripper_pose(arm)
         self._move(arm, T_goal, f"{what}: the check motion")
         delta = self.cell.gripper_pose(arm) @ invert(T0)
@@ -517,14 +545,40 @@ class NeedleProcedure:
         if not tr.converged:
             raise _StepFailed("lost_track", f"{what}: the tracker lost the needle after the "
                                             f"check motion ({tr.reason})")
-        off = float(np.linalg.norm(tr.pose[:3, 3] - moved[:3, 3]))
-        stay = float(np.linalg.norm(tr.pose[:3, 3] - before[:3, 3]))
+        # distances of the whole arc, not of the centre: a check that turns the needle
+        # about its centre (the regrasp's) leaves the centre where it was. But the slide
+        # along the arc is seen only at the ends: where these views did not measure it
+        # (the jaws and the tissue hide the ends), the tracked slide is the motion
+        # model's, which assumed the hold, and a check that differs only by a slide
+        # proves nothing
+        ref = tr.refined
+        slide_seen = ref is not None and ref.sigma_slide_seen <= self.s.max_sigma_angle
+        if not slide_seen and self._slide_free_distance(moved, before) \
+                <= 2.0 * self.s.hold_tolerance:
+            raise _StepFailed("hold_unseen", f"{what}: the check motion turned the needle "
+                                             "along its own arc, and the views do not show "
+                                             "its ends: whether it followed is unseen")
+        dist = self._arc_distance if slide_seen else self._slide_free_distance
+        off, stay = (dist(tr.pose, T) for T in (moved, before))
         if off > self.s.hold_tolerance or off >= stay:
             raise _StepFailed("grasp_missed",
                               f"{what}: the needle did not follow the jaws ({off * 1e3:.2f} mm "
                               f"from where it would be if held, {stay * 1e3:.2f} mm from "
                               "where it was)")
         return tr.pose
+
+    def _arc_distance(self, T_a: np.ndarray, T_b: np.ndarray) -> float:
+        """RMS distance (m) between the needle's arc points at two poses."""
+        p = self.needle.points(24)
+        d = (p @ T_a[:3, :3].T + T_a[:3, 3]) - (p @ T_b[:3, :3].T + T_b[:3, 3])
+        return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+
+    def _slide_free_distance(self, T_a: np.ndarray, T_b: np.ndarray) -> float:
+        """How far apart two needle poses are whatever their slide along the arc (m):
+        the centres' distance and the planes' tilt (taken at the radius)."""
+        tilt = math.acos(max(-1.0, min(1.0, float(T_a[:3, 2] @ T_b[:3, 2]))))
+        return math.hypot(float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3])),
+                          self.needle.radius * tilt)
 
     def _view(self, T_ref_N: np.ndarray, tools: Sequence[np.ndarray] = ()) -> str:
         """Why the cameras would not see the needle well at ``T_ref_N`` ("" when they
@@ -556,40 +610,25 @@ class NeedleProcedure:
                     return "hidden or not against the tissue"
         return ""
 
-    def _behind_tool(self, cam: CameraModel, uv: np.ndarray, T_ref_T: np.ndarray
-                     ) -> np.ndarray:
-        """Which image points ``uv`` (k, 2) the gripper at ``T_ref_T`` may hide: those
-        within the image of its jaws or its shaft (cylinders along -z behind the tip, cut
-        at 1 cm in front of the camera). Depth is ignored, so a point in front of the tool
-        counts as hidden too: the estimate errs toward refusing a view."""
+    def _tool_parts(self, T_ref_T: np.ndarray) -> tuple[ToolCylinder, ToolCylinder]:
+        """The gripper at ``T_ref_T`` as the parts that may hide the needle: its jaws (a
+        cylinder of ``jaw_radius`` over ``jaw_length`` behind the tip) and its shaft
+        (``tool_radius``, on to ``tool_length`` behind the tip)."""
         s = self.s
         tip, z = T_ref_T[:3, 3], T_ref_T[:3, 2]
-        hidden = self._behind_cylinder(cam, uv, tip, tip - s.jaw_length * z, s.jaw_radius)
-        hidden |= self._behind_cylinder(cam, uv, tip - s.jaw_length * z,
-                                        tip - s.tool_length * z, s.tool_radius)
-        return hidden
+        heel = tip - s.jaw_length * z
+        return (ToolCylinder(tip, heel, s.jaw_radius),
+                ToolCylinder(heel, tip - s.tool_length * z, s.tool_radius))
 
-    @staticmethod
-    def _behind_cylinder(cam: CameraModel, uv: np.ndarray, a: np.ndarray, b: np.ndarray,
-                         radius: float) -> np.ndarray:
-        """Which of ``uv`` (k, 2) lie within the image of the cylinder of ``radius`` (m)
-        from ``a`` to ``b`` (ref frame)."""
-        A = cam.T_cam_ref[:3, :3] @ np.stack([a, b]).T + cam.T_cam_ref[:3, 3:4]
-        za, zb = A[2]
-        near = 0.01
-        if za <= near and zb <= near:
-            return np.zeros(len(uv), dtype=bool)
-        if za <= near or zb <= near:
-            cut = A[:, 0] + (near - za) / (zb - za) * (A[:, 1] - A[:, 0])
-            A = np.stack([A[:, 0] if za > near else cut, A[:, 1] if zb > near else cut], 1)
-        ends = cam.project(A.T)
-        d = ends[1] - ends[0]
-        L2 = float(d @ d)
-        t = np.clip(((uv - ends[0]) @ d) / L2, 0.0, 1.0) if L2 > 0 else np.zeros(len(uv))
-        dist = np.linalg.norm(uv - (ends[0] + t[:, None] * d), axis=1)
-        # the cylinder's image widens toward the camera: 1/z runs linearly along its image
-        radius_px = cam.K[0, 0] * radius * ((1.0 - t) / A[2, 0] + t / A[2, 1])
-        return dist <= radius_px
+    def _behind_tool(self, cam: CameraModel, uv: np.ndarray, T_ref_T: np.ndarray
+                     ) -> np.ndarray:
+        """Which image points ``uv`` (k, 2) the gripper at ``T_ref_T`` may hide. Depth is
+        ignored, so a point in front of the tool counts as hidden too: the estimate errs
+        toward refusing a view."""
+        hidden = np.zeros(len(uv), dtype=bool)
+        for part in self._tool_parts(T_ref_T):
+            hidden |= part.hides(cam, uv)
+        return hidden
 
     def _backdrop(self, cam: CameraModel, pts: np.ndarray) -> np.ndarray:
         """Which of ``pts`` (k, 3, ref) ``cam`` sees against the tissue: the ray through
@@ -820,7 +859,18 @@ class NeedleProcedure:
         tr = self._look(self.cell.gripper_pose(B) @ invert(T0))
         approach_look = tr.converged
         if tr.converged:
-            drive, choice = self._drive_on(B, tr.pose)
+            # the look low over the tissue, across the masked incision, with the jaws
+            # near the surface, is the worst of the procedure's: it refines the drive
+            # only where it agrees with the grasp seen before the approach, which the
+            # jaws carried rigidly; a larger change is more likely its error than a slip
+            # (a slip the exit check after the drive still catches)
+            G_new = self._grasp_seen(B, tr.pose)
+            assert self.G_TN is not None
+            shift = float(np.linalg.norm(G_new[:3, 3] - self.G_TN[:3, 3]))
+            turn = rotation_angle(G_new[:3, :3], self.G_TN[:3, :3])
+            approach_look = shift <= self.s.replan_shift and turn <= self.s.replan_turn
+            if approach_look:
+                drive, choice = self._drive_on(B, tr.pose)
         # else: the gripper may hide the needle here; the grasp seen before the approach
         # moved rigidly with the jaws, so the drive keeps it
         T_app = self.cell.gripper_pose(B)
@@ -897,10 +947,13 @@ class NeedleProcedure:
         return drive, choice
 
     def _approach(self, drive: Drive, arm: str) -> np.ndarray:
-        """The drive's approach pose, along the gripper (seed 002) or else along the
-        needle tip's tangent."""
+        """The drive's approach pose, along the needle tip's tangent or else along the
+        gripper (seed 002): the gripper's axis may run nearly along the tissue, and an
+        approach along it carries the tip in low over the surface, where a tip tracked a
+        little high enters early (by the depth error over the approach's slope); along
+        the tangent the tip comes in as the drive will move it."""
         last = ""
-        for along in ("gripper", "tangent"):
+        for along in ("tangent", "gripper"):
             try:
                 T = drive.approach_pose(self.s.approach, along=along)
             except NeedleError as exc:
@@ -918,24 +971,27 @@ class NeedleProcedure:
         assert B is not None
         self.cell.open(B)
         self.holder = None
-        try:
-            self.cell.move(B, _back_off(self.cell.gripper_pose(B), s.retreat))
-        except Exception as exc:
-            raise _StepFailed("move_stopped", f"regrasp: the released gripper could not back "
-                                              f"off ({exc})") from None
+        self._back_off_released(B, "regrasp")
         T_N = self._converged("regrasp")
         self._check_exit(T_N, "regrasp")
         phi_lo, phi_hi, out_mm = self._tip_part(T_N)
         if phi_hi < phi_lo:
             raise _refuse("no_grasp", f"regrasp: the tip stands {out_mm:.1f} mm out of the "
                                       f"tissue, too little to grasp")
-        phi = 0.5 * (phi_lo + phi_hi)
         point = self.incision.mean(axis=0)
         assert self.G_CS is not None
+        # the tip part rises steeply out of the exit, and a jaw square to the wire holds
+        # the shaft at most (90 deg - the wire's rise) above the surface: the grasps
+        # along the whole tip part, the steepest shafts first (nearer the exit the wire
+        # leans more, further out it stands higher)
+        grasps = [g for phi in np.linspace(phi_lo, phi_hi, s.regrasp_points)
+                  for g in surface_grasps(self.needle, T_N, float(phi), point, self.normal,
+                                          s.regrasp)]
+        grasps.sort(key=lambda g: -g.elevation)
         order = [B] + [a for a in self.arms if a != B]
         last = ""
         for arm in order:
-            for g in surface_grasps(self.needle, T_N, phi, point, self.normal, s.regrasp):
+            for g in grasps:
                 ok, why = self._reach(arm, [g.T_ref_T, _back_off(g.T_ref_T, s.approach)])
                 if ok:
                     try:
@@ -945,11 +1001,27 @@ class NeedleProcedure:
                         raise _refuse("bad_pull", f"regrasp: {exc}") from None
                     ok, why = self._reach(arm, list(pull.G_PT))
                 if ok:
-                    return self._regrasp(arm, g, pull, phi, out_mm)
+                    return self._regrasp(arm, g, pull, g.params.phi, out_mm)
                 last = f"{arm}: {why}"
         raise _refuse("out_of_reach", f"regrasp: no arm reaches a grasp of the tip that it "
                                       f"can pull with "
                                       f"({last or 'no grasp of the tip part clears the tissue'})")
+
+    def _back_off_released(self, arm: str, what: str) -> None:
+        """Back the opened gripper ``arm`` off the needle by ``retreat``: along its own
+        -z, or where the wrist cannot follow that, aslant in the plane of the jaws' faces
+        (:data:`_BACK_OFF_TILTS`), the first whose whole path the arm reaches."""
+        T0 = self.cell.gripper_pose(arm)
+        why = ""
+        for tilt in _BACK_OFF_TILTS:
+            goal = _back_off(T0, self.s.retreat, tilt)
+            ok, why = self._reach(arm, _path(T0, goal))
+            if ok:
+                self._move(arm, goal, f"{what}: the released gripper's back-off")
+                return
+        raise _StepFailed("move_stopped", f"{what}: the released gripper cannot back off "
+                                          f"the needle in any direction that clears the "
+                                          f"jaws ({why})")
 
     def _tip_part(self, T_N: np.ndarray) -> tuple[float, float, float]:
         """The tip part out of the tissue at tracked pose ``T_N``: the grasp may go from

@@ -15,7 +15,13 @@ from oralnav.control.errors import NeedleError
 from oralnav.control.geometry import transform_from_euler
 from oralnav.control.needle import Needle
 from oralnav.control.needle_features import feature_maps
-from oralnav.control.needle_refine import PoseRefiner, RefineSettings, TissuePlane, swage_evidence
+from oralnav.control.needle_refine import (
+    PoseRefiner,
+    RefineSettings,
+    TissuePlane,
+    ToolCylinder,
+    swage_evidence,
+)
 from oralnav.control.needle_tracker import FilterSettings, NeedleTracker, TrackSettings, mirror_tilt
 
 K = np.array([[600.0, 0, 240], [0, 600.0, 180], [0, 0, 1]])   # the stereo endoscope's f
@@ -302,3 +308,71 @@ def test_bad_occluder_is_refused():
         ref.refine(feats, T_TRUE, occluder=([0.0, 0.0, 0.1], [0.0, 0.0, -1.0]))
     with pytest.raises(NeedleError, match="under it"):
         ref.refine(feats, T_TRUE, occluder=TissuePlane([0.0, 0.0, 0.1], [0.0, 0.0, 1.0]))
+
+
+def _tool_over(T, phi, radius=0.002, length=0.01):
+    """A jaw-like cylinder across the needle at arc angle ``phi``, 3 mm in front of the
+    wire (toward the camera), along the needle's radial direction there."""
+    p = T[:3, :3] @ NEEDLE.point(phi) + T[:3, 3]
+    toward = -p / np.linalg.norm(p)                       # toward the camera at the origin
+    radial = T[:3, :3] @ (NEEDLE.point(phi) / NEEDLE.radius)
+    c = p + 0.003 * toward
+    return ToolCylinder(c - 0.5 * length * radial, c + 0.5 * length * radial, radius)
+
+
+def test_tool_hides_what_lies_behind_it_only():
+    """Tool occlusion (issue 7, where the filter loses the needle: the jaws): a cylinder
+    hides the image points within its outline that lie behind it; with depth a point in
+    front of it is not hidden; without depth (the planner's conservative view) it is."""
+    tool = _tool_over(T_TRUE, 0.5 * NEEDLE.arc)
+    p = T_TRUE[:3, :3] @ NEEDLE.point(0.5 * NEEDLE.arc) + T_TRUE[:3, 3]
+    uv = LEFT.project(np.stack([p, p + [0.01, 0.0, 0.0]]))
+    behind = tool.hides(LEFT, uv, np.array([p[2], p[2]]))
+    assert behind.tolist() == [True, False]
+    assert not tool.hides(LEFT, uv[:1], np.array([0.05]))[0]     # nearer than the tool
+    assert tool.hides(LEFT, uv[:1])[0]
+    with pytest.raises(NeedleError, match="radius"):
+        ToolCylinder([0, 0, 0], [0, 0, 0.01], 0.0)
+
+
+def test_refinement_does_not_count_what_a_tool_hides():
+    """The refinement with a tool over the wire: the points behind it are neither
+    searched nor counted, so a jaw across the wire (drawn as a wide dark bar that ends
+    the wire's crest there) leaves the support whole and the fit on the wire."""
+    feats_clean = _feats([LEFT, RIGHT])
+    tool = _tool_over(T_TRUE, 0.5 * NEEDLE.arc)
+    ref = PoseRefiner(NEEDLE, [LEFT, RIGHT])
+    imgs = []
+    for cam in (LEFT, RIGHT):
+        img = _draw(cam)
+        ab = cam.project_from(cam.T_cam_ref, np.stack([tool.a, tool.b]))
+        cv2.line(img, tuple(int(v) for v in ab[0]), tuple(int(v) for v in ab[1]), 200, 26)
+        imgs.append(feature_maps(img, WIRE_PX))
+    bare = ref.refine(imgs, T_TRUE)
+    masked = ref.refine(imgs, T_TRUE, tools=[tool])
+    assert masked.support > bare.support
+    assert masked.support >= 0.95 and masked.ok
+    assert _err(masked.pose, T_TRUE)[0] < 1e-4
+    assert ref.refine(feats_clean, T_TRUE, tools=[tool]).ok
+
+
+def test_slide_prior_holds_the_slide_when_no_end_is_seen():
+    """The slide prior (a held needle, issue 7): without end measurements a slid start
+    stays slid and the slide is undetermined; with a prior at the true slide the fit
+    comes back to it and the slide's sigma is the prior's order, while the measured-only
+    sigma (sigma_slide_seen) still says the views did not see it. A prior from the other
+    twin is ignored."""
+    feats = _feats([LEFT, RIGHT])
+    ref = PoseRefiner(NEEDLE, [LEFT, RIGHT], RefineSettings(end_weight=0.0))
+    start = T_TRUE @ transform_from_euler([0, 0, 0], [0, 0, 4])
+    free = ref.refine(feats, start)
+    held = ref.refine(feats, start, slide_prior=(T_TRUE, math.radians(0.5)))
+    assert free.sigma_slide > math.radians(10) and _err(free.pose, T_TRUE)[1] > 3.0
+    assert _err(held.pose, T_TRUE)[1] < 0.5
+    assert held.sigma_slide < math.radians(0.6)
+    assert held.sigma_slide_seen > math.radians(10)
+    twin = T_TRUE @ transform_from_euler([0, 0, 0], [180, 0, 0])
+    other = ref.refine(feats, start, slide_prior=(twin, math.radians(0.5)))
+    assert other.sigma_slide > math.radians(10)
+    with pytest.raises(NeedleError, match="slide prior"):
+        ref.refine(feats, start, slide_prior=(T_TRUE, 0.0))
