@@ -157,6 +157,26 @@ class ToolCylinder:
         return hidden
 
 
+def checked_tools(tools: Sequence[ToolCylinder]) -> tuple[ToolCylinder, ...]:
+    """``tools`` as a tuple, refused (:class:`NeedleError`) when one is not a
+    :class:`ToolCylinder`."""
+    tools = tuple(tools)
+    for tool in tools:
+        if not isinstance(tool, ToolCylinder):
+            raise NeedleError(f"tools must be ToolCylinder parts, got {type(tool).__name__}")
+    return tools
+
+
+def hidden_by(tools: Sequence[ToolCylinder], cam: CameraModel, uv: np.ndarray,
+              depth: np.ndarray | None = None) -> np.ndarray:
+    """Which image points ``uv`` (k, 2) of ``cam`` any of ``tools`` hides
+    (:meth:`ToolCylinder.hides`; ``depth`` as there)."""
+    hidden = np.zeros(len(uv), dtype=bool)
+    for tool in tools:
+        hidden |= tool.hides(cam, uv, depth)
+    return hidden
+
+
 @dataclass(frozen=True)
 class RefineSettings:
     """Refinement settings. Pixels px.
@@ -389,10 +409,8 @@ class PoseRefiner:
                                                    self.cameras, strict=True):
             vis = seen
             if tools:
-                depth = pts @ cam.T_cam_ref[2, :3] + cam.T_cam_ref[2, 3]
-                hidden = np.zeros(K, dtype=bool)
-                for tool in tools:
-                    hidden |= tool.hides(cam, uv, depth)
+                hidden = hidden_by(tools, cam, uv,
+                                   pts @ cam.T_cam_ref[2, :3] + cam.T_cam_ref[2, 3])
                 vis = ~hidden if vis is None else vis & ~hidden
             d, found = self._peaks(ridge, uv, n, half, vis)
             found &= np.all(np.isfinite(n), axis=1)
@@ -466,10 +484,7 @@ class PoseRefiner:
         while the jaws or the tissue hide both ends. Ignored when ``T_prior`` is the
         other twin (turned more than 90 deg from ``T``)."""
         s = self.s
-        for tool in tools:
-            if not isinstance(tool, ToolCylinder):
-                raise NeedleError(f"tools must be ToolCylinder parts, got "
-                                  f"{type(tool).__name__}")
+        tools = checked_tools(tools)
         if occluder is not None:
             if not isinstance(occluder, TissuePlane):
                 raise NeedleError(f"occluder must be a TissuePlane or None, got "
@@ -538,17 +553,16 @@ class PoseRefiner:
                 T = _perturb(T, step)
         sig_a = sig_p = sig_s = sig_seen = math.inf
         if H is not None:
+            # the last round's normal equations; residual scale floored at 0.1 px so a
+            # perfect synthetic fit does not claim a perfect pose
+            info = H / max(rms, 0.1) ** 2
             try:
-                seen = np.linalg.inv(H / max(rms, 0.1) ** 2)
-                sig_seen = math.sqrt(max(float(seen[2, 2]), 0.0))
+                sig_seen = math.sqrt(max(float(np.linalg.inv(info)[2, 2]), 0.0))
             except np.linalg.LinAlgError:
                 pass
             try:
-                # the last round's normal equations; residual scale floored at 0.1 px so a
-                # perfect synthetic fit does not claim a perfect pose; plus the prior's
-                # information on the slide
-                info = H / max(rms, 0.1) ** 2 + info_prior * np.outer(e_slide, e_slide)
-                cov = np.linalg.inv(info)
+                # plus the prior's information on the slide
+                cov = np.linalg.inv(info + info_prior * np.outer(e_slide, e_slide))
                 sig_a = math.sqrt(max(float(np.linalg.eigvalsh(cov[:3, :3]).max()), 0.0))
                 sig_p = math.sqrt(max(float(np.linalg.eigvalsh(cov[3:, 3:]).max()), 0.0))
                 sig_s = math.sqrt(max(float(cov[2, 2]), 0.0))
@@ -634,9 +648,7 @@ def swage_evidence(needle: Needle, cameras: Sequence[CameraModel],
             uv = cam.project_from(Tc, pts).astype(np.float32)
             ok = np.all(np.isfinite(uv), axis=1) & cam.in_image(uv)
             if tools:
-                depth = pts @ Tc[2, :3] + Tc[2, 3]
-                for tool in tools:
-                    ok &= ~tool.hides(cam, uv, depth)
+                ok &= ~hidden_by(tools, cam, uv, pts @ Tc[2, :3] + Tc[2, 3])
             v = cv2.remap(np.asarray(ridge, np.float32), uv[:, 0:1], uv[:, 1:2],
                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                           borderValue=0.0)[:, 0].astype(float)

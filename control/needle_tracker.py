@@ -61,6 +61,7 @@ from .needle_refine import (
     RefineSettings,
     TissuePlane,
     ToolCylinder,
+    checked_tools,
     swage_evidence,
 )
 
@@ -598,11 +599,7 @@ class NeedleTracker:
         """The instruments' parts in view now (jaws, shafts; reference frame): the
         refinement neither looks for nor misses the wire behind them, from the next
         update on. Give them anew whenever a gripper moved."""
-        tools = tuple(tools)
-        for t in tools:
-            if not isinstance(t, ToolCylinder):
-                raise NeedleError(f"tools must be ToolCylinder parts, got {type(t).__name__}")
-        self.tools = tools
+        self.tools = checked_tools(tools)
 
     @property
     def occluder(self) -> TissuePlane | None:

@@ -71,6 +71,7 @@ from oralnav.control.needle_grasp import (
     select_grasp,
     surface_grasps,
 )
+from oralnav.control.needle_refine import hidden_by
 from oralnav.control.needle_tracker import (
     FilterSettings,
     NeedleTrack,
@@ -625,10 +626,7 @@ class NeedleProcedure:
         """Which image points ``uv`` (k, 2) the gripper at ``T_ref_T`` may hide. Depth is
         ignored, so a point in front of the tool counts as hidden too: the estimate errs
         toward refusing a view."""
-        hidden = np.zeros(len(uv), dtype=bool)
-        for part in self._tool_parts(T_ref_T):
-            hidden |= part.hides(cam, uv)
-        return hidden
+        return hidden_by(self._tool_parts(T_ref_T), cam, uv)
 
     def _backdrop(self, cam: CameraModel, pts: np.ndarray) -> np.ndarray:
         """Which of ``pts`` (k, 3, ref) ``cam`` sees against the tissue: the ray through
@@ -1001,7 +999,7 @@ class NeedleProcedure:
                         raise _refuse("bad_pull", f"regrasp: {exc}") from None
                     ok, why = self._reach(arm, list(pull.G_PT))
                 if ok:
-                    return self._regrasp(arm, g, pull, g.params.phi, out_mm)
+                    return self._regrasp(arm, g, pull, out_mm)
                 last = f"{arm}: {why}"
         raise _refuse("out_of_reach", f"regrasp: no arm reaches a grasp of the tip that it "
                                       f"can pull with "
@@ -1034,8 +1032,8 @@ class NeedleProcedure:
         return (cross + s.regrasp_exit_margin / r, arc - s.regrasp_tip_margin / r,
                 (arc - cross) * r * 1e3)
 
-    def _regrasp(self, arm: str, g: SurfaceGrasp, pull: Any, phi: float,
-                 out_mm: float) -> dict[str, Any]:
+    def _regrasp(self, arm: str, g: SurfaceGrasp, pull: Any, out_mm: float
+                 ) -> dict[str, Any]:
         s = self.s
         self._move(arm, _back_off(g.T_ref_T, s.approach), "regrasp approach")
         self._move(arm, g.T_ref_T, "regrasp reach")
@@ -1048,7 +1046,7 @@ class NeedleProcedure:
             self._move(arm, T, "regrasp check turn")
         T_N = self._verify_hold(arm, pull.G_PT[k], "regrasp")
         self.holder, self.G_TN = arm, self._grasp_seen(arm, T_N)
-        return {"arm": arm, "grasp_phi_deg": round(math.degrees(phi), 2),
+        return {"arm": arm, "grasp_phi_deg": round(math.degrees(g.params.phi), 2),
                 "tip_out_mm": round(out_mm, 2),
                 "shaft_elevation_deg": round(math.degrees(g.elevation), 1)}
 
