@@ -19,7 +19,8 @@ Failures are classified by the first failed step and its cause: a refusal before
 procedure saw (``grasp_missed``, ``lost_track``, ``move_stopped``, ...), or
 ``undetected``: the procedure believed the step done and the truth says otherwise (the
 dangerous kind), unless the next step caught it before moving on it
-(``caught_by_NR_exit_missed``: the drive, checked once the jaws were off the needle).
+(``caught_by_NR_exit_missed``: the drive, checked once the jaws were off the needle;
+``caught_by_NP_grasp_missed``: the regrasp, whose hold the pull shows).
 
 Writes ``needle.json``: ``{"trials", "overall", "steps": {step: overall rate}}`` (Table
 II's first row, as the issue asks), the individual rates (Table II's second row), the
@@ -50,8 +51,11 @@ PAPER = {"trials": 20, "overall": 0.70,
                         "NP": 14 / 14}}
 
 
-#: Causes by which a step reports that an earlier one, which believed itself done, failed.
-_LATE_CHECKS = ("exit_missed", "not_in_tissue")
+#: Causes by which a step reports that the one before, which believed itself done,
+#: failed: NR checks the drive once the jaws are off the needle, NP shows whether the
+#: regrasp holds by pulling.
+_LATE_CHECKS = {"NR": ("exit_missed", "not_in_tissue"),
+                "NP": ("grasp_missed", "still_in_tissue")}
 
 
 def first_failure(results: Sequence[Any]) -> tuple[dict[str, bool | None], dict | None]:
@@ -67,9 +71,10 @@ def first_failure(results: Sequence[Any]) -> tuple[dict[str, bool | None], dict 
         if failure is None and not steps[r.step]:
             cause = r.cause if not r.ok else "undetected"
             later = results[k + 1] if k + 1 < len(results) else None
-            if r.ok and later is not None and later.cause in _LATE_CHECKS:
+            if r.ok and later is not None and later.cause in _LATE_CHECKS.get(later.step, ()):
                 # the step's own check could not run; the next step's caught it before
-                # moving on it (the drive checked after the back-off)
+                # moving on it (the drive checked after the back-off, the regrasp's
+                # hold shown by the pull)
                 cause = f"caught_by_{later.step}_{later.cause}"
             failure = {"step": r.step, "cause": cause,
                        "detail": r.detail if not r.ok else r.truth_detail,

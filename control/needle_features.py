@@ -58,10 +58,16 @@ def feature_maps(image: np.ndarray, wire_px: float, contrast: float = 12.0,
         raise NeedleError(f"wire width must be > 0 px, got {wire_px}")
     k = max(3, 2 * int(math.ceil(wire_px)) + 1)
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
+    # the bright hat's window only just exceeds the wire: a highlight lies within the
+    # wire and a wire against a dark backdrop is as wide as the wire, while a strip of
+    # tissue between a dark thing and the tissue's edge (the tip just short of the
+    # edge) is often wider, and read as wire it runs an end on to the edge
+    kb = max(3, 2 * (int(math.ceil(wire_px)) // 2) + 1)
+    kernel_b = cv2.getStructuringElement(cv2.MORPH_RECT, (kb, kb))
     # a light blur first: the hats of raw sensor noise span its whole range over a window
     smooth = cv2.GaussianBlur(img, (3, 3), 0)
     dark = cv2.morphologyEx(smooth, cv2.MORPH_BLACKHAT, kernel)
-    bright = cv2.morphologyEx(smooth, cv2.MORPH_TOPHAT, kernel)
+    bright = cv2.morphologyEx(smooth, cv2.MORPH_TOPHAT, kernel_b)
     if ignore is not None:
         # before anything spreads them: blurred, a masked line would bleed into the
         # needle's crest where the two pass close

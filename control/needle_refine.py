@@ -223,8 +223,11 @@ class Refined:
     needle centre's position and of its orientation from the pose covariance (largest
     axis); ``sigma_slide`` (rad): that of the turn about the needle's own axis (the slide
     along the arc, which only the ends measure), ``sigma_slide_seen`` the same from these
-    images alone (without the slide prior); ``ok``: ``rms_px`` and ``support`` within
-    the settings' bounds.
+    images alone (without the prior); ``ok``: ``rms_px`` and ``support`` within
+    the settings' bounds; ``cov``: the pose covariance (6x6, :func:`_perturb`'s local
+    parameters, prior included; ``None`` when the normal equations are singular);
+    ``prior_distance2``: the squared Mahalanobis distance of the pose from the prior
+    (0 without one; large: the images moved the pose away from what was expected).
     """
 
     pose: np.ndarray
@@ -235,6 +238,71 @@ class Refined:
     ok: bool
     sigma_slide: float = math.inf
     sigma_slide_seen: float = math.inf
+    cov: np.ndarray | None = None
+    prior_distance2: float = 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class PosePrior:
+    """What is known of a pose before the images: ``pose`` (``T_ref_N``) and the
+    information matrix ``info`` (6x6, the inverse covariance) of the local parameters
+    of :func:`_perturb` (rotation vector, rad, then translation, m, both in frame N).
+    A zero row leaves that parameter to the images. Made by :meth:`from_cov` (a
+    tracked pose moved by a known motion) or :meth:`slide` (only the slide along the
+    arc is known)."""
+
+    pose: np.ndarray
+    info: np.ndarray
+
+    def __post_init__(self) -> None:
+        T, info = np.asarray(self.pose, dtype=float), np.asarray(self.info, dtype=float)
+        if not (T.shape == (4, 4) and np.all(np.isfinite(T))):
+            raise NeedleError(f"pose prior: need a finite 4x4 pose, got shape {T.shape}")
+        if not (info.shape == (6, 6) and np.all(np.isfinite(info))
+                and np.allclose(info, info.T, atol=1e-9 * max(1.0, float(np.abs(info).max())))
+                and np.linalg.eigvalsh(info).min() >= -1e-9 * max(1.0, float(np.abs(info).max()))):
+            raise NeedleError("pose prior: the information matrix must be a finite, "
+                              "symmetric, positive semi-definite 6x6")
+        object.__setattr__(self, "pose", T)
+        object.__setattr__(self, "info", info)
+
+    @classmethod
+    def from_cov(cls, pose: np.ndarray, cov: np.ndarray) -> PosePrior:
+        """From a covariance (6x6, local parameters; rad^2, m^2)."""
+        cov = np.asarray(cov, dtype=float)
+        if not (cov.shape == (6, 6) and np.all(np.isfinite(cov))):
+            raise NeedleError(f"pose prior: need a finite 6x6 covariance, got {cov.shape}")
+        try:
+            info = np.linalg.inv(cov)
+        except np.linalg.LinAlgError:
+            raise NeedleError("pose prior: the covariance is singular") from None
+        return cls(pose, 0.5 * (info + info.T))
+
+    @classmethod
+    def slide(cls, pose: np.ndarray, sigma: float) -> PosePrior:
+        """Only the slide along the arc (the turn about N's z) is known, to ``sigma``
+        rad (a needle in closed jaws or in tissue cannot slide far)."""
+        if not (sigma > 0 and math.isfinite(sigma)):
+            raise NeedleError(f"pose prior: the slide's sigma must be finite and > 0 rad, "
+                              f"got {sigma}")
+        info = np.zeros((6, 6))
+        info[2, 2] = 1.0 / (sigma * sigma)
+        return cls(pose, info)
+
+    def residual(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The local parameters of ``T`` from the prior pose and their Jacobian with
+        respect to :func:`_perturb`'s parameters at ``T`` (rotation to first order)."""
+        Rp, R = self.pose[:3, :3], T[:3, :3]
+        e = np.concatenate([Rotation.from_matrix(Rp.T @ R).as_rotvec(),
+                            Rp.T @ (T[:3, 3] - self.pose[:3, 3])])
+        J = np.eye(6)
+        J[3:, 3:] = Rp.T @ R
+        return e, J
+
+    def distance2(self, T: np.ndarray) -> float:
+        """Squared Mahalanobis distance of ``T`` from the prior (its known directions)."""
+        e, _ = self.residual(T)
+        return float(e @ self.info @ e)
 
 
 #: Forward-difference step of the refinement's Jacobian (rad, m).
@@ -467,7 +535,7 @@ class PoseRefiner:
     def refine(self, features: Sequence[NeedleFeatures], T: np.ndarray, *,
                occluder: TissuePlane | None = None, tip_only: bool = False,
                tools: Sequence[ToolCylinder] = (),
-               slide_prior: tuple[np.ndarray, float] | None = None) -> Refined:
+               prior: PosePrior | None = None) -> Refined:
         """Refine ``T`` (``T_ref_N``) on the cameras' features (:func:`.needle_features.
         feature_maps`, one per camera, same order): the crest on ``ridge``, the ends on
         ``ends``. ``occluder``: the tissue's surface when the needle may be in it (what
@@ -477,12 +545,12 @@ class PoseRefiner:
         and where it leaves the tangent looks like an end), so the tip alone holds the
         slide along the arc. ``tools``: the instruments' parts in view (jaws, shafts),
         which hide what lies behind them in each view as the tissue does.
-        ``slide_prior``: ``(T_prior, sigma)``, what is known of the slide along the arc
-        before these images (a pose ``T_ref_N`` and the one-sigma of its turn about the
-        needle's axis, rad; a needle held in closed jaws or standing in tissue cannot
-        slide far): weighed with the ends' measurement, it keeps the slide determined
-        while the jaws or the tissue hide both ends. Ignored when ``T_prior`` is the
-        other twin (turned more than 90 deg from ``T``)."""
+        ``prior``: what is known of the pose before these images (:class:`PosePrior`: a
+        tracked pose moved by a known motion, or only its slide): weighed with the
+        images' measurements, it keeps determined what the jaws or the tissue hide (the
+        slide while both ends are hidden, the depth a short baseline barely measures).
+        Ignored when the prior's pose is the other twin (turned more than 90 deg from
+        ``T``)."""
         s = self.s
         tools = checked_tools(tools)
         if occluder is not None:
@@ -502,18 +570,13 @@ class PoseRefiner:
         ridges = [np.asarray(f.ridge, dtype=np.float32) for f in features]
         ends = [np.asarray(f.ends, dtype=np.float32) for f in features]
         T = np.asarray(T, dtype=float).copy()
-        R_prior, info_prior = None, 0.0
-        if slide_prior is not None:
-            Tp, sp = slide_prior
-            Tp = np.asarray(Tp, dtype=float)
-            if not (Tp.shape == (4, 4) and np.all(np.isfinite(Tp)) and sp > 0):
-                raise NeedleError(f"slide prior: need a finite 4x4 pose and sigma > 0 rad, "
-                                  f"got shape {Tp.shape} and {sp}")
-            if math.isfinite(sp) and rotation_angle(Tp[:3, :3], T[:3, :3]) < 0.5 * math.pi:
-                R_prior, info_prior = Tp[:3, :3], 1.0 / (sp * sp)
+        if prior is not None:
+            if not isinstance(prior, PosePrior):
+                raise NeedleError(f"prior must be a PosePrior or None, got "
+                                  f"{type(prior).__name__}")
+            if rotation_angle(prior.pose[:3, :3], T[:3, :3]) >= 0.5 * math.pi:
+                prior = None
         rms, support, H = math.inf, 0.0, None
-        e_slide = np.zeros(6)
-        e_slide[2] = 1.0
         for half in (*s.search_px, s.search_px[-1]):
             meas, found_n, inside = self._measure(ridges, ends, T, half, occluder, tip_only,
                                                   tools)
@@ -535,23 +598,26 @@ class PoseRefiner:
                 g = (J * w[:, None]).T @ r
                 rms = float(np.sqrt(np.sum(w * r * r) / max(np.sum(w), 1e-12)))
                 Hs, gs = H, g
-                if R_prior is not None:
-                    # the prior in the measurements' units (px^2 per rad^2 at this RMS):
-                    # the turn about N's z from the prior pose, which the local
-                    # parameter 2 changes one for one
-                    k = max(rms, 0.1) ** 2 * info_prior
-                    slide = float(Rotation.from_matrix(R_prior.T @ T[:3, :3]).as_rotvec()[2])
-                    Hs = H + k * np.outer(e_slide, e_slide)
-                    gs = g + k * slide * e_slide
-                # a touch of damping keeps a weak direction (a single view's depth) from
-                # running away before the next search; the slide needs none under a
-                # prior (which holds it), and damping there would only slow the prior
                 damp = 1e-6 * np.trace(H) / 6 * np.eye(6)
-                if R_prior is not None:
-                    damp[2, 2] = 0.0
+                if prior is not None:
+                    # the prior in the measurements' units (px^2 per unit of information
+                    # at this RMS), on the local parameters from the prior's pose
+                    e, Jp = prior.residual(T)
+                    k = max(rms, 0.1) ** 2
+                    JI = Jp.T @ prior.info
+                    Hs = H + k * JI @ Jp
+                    gs = g + k * JI @ e
+                    # a touch of damping keeps a weak direction (a single view's depth)
+                    # from running away before the next search; a direction the prior
+                    # holds needs none, and damping there would only slow the prior
+                    damp[np.diag(prior.info) > 0] = 0.0
                 step = np.linalg.solve(Hs + damp, -gs)
                 T = _perturb(T, step)
         sig_a = sig_p = sig_s = sig_seen = math.inf
+        cov = None
+        d2 = 0.0
+        if prior is not None:
+            d2 = prior.distance2(T)
         if H is not None:
             # the last round's normal equations; residual scale floored at 0.1 px so a
             # perfect synthetic fit does not claim a perfect pose
@@ -560,16 +626,19 @@ class PoseRefiner:
                 sig_seen = math.sqrt(max(float(np.linalg.inv(info)[2, 2]), 0.0))
             except np.linalg.LinAlgError:
                 pass
+            if prior is not None:
+                _, Jp = prior.residual(T)
+                info = info + Jp.T @ prior.info @ Jp
             try:
-                # plus the prior's information on the slide
-                cov = np.linalg.inv(info + info_prior * np.outer(e_slide, e_slide))
+                cov = np.linalg.inv(info)
+                cov = 0.5 * (cov + cov.T)
                 sig_a = math.sqrt(max(float(np.linalg.eigvalsh(cov[:3, :3]).max()), 0.0))
                 sig_p = math.sqrt(max(float(np.linalg.eigvalsh(cov[3:, 3:]).max()), 0.0))
                 sig_s = math.sqrt(max(float(cov[2, 2]), 0.0))
             except np.linalg.LinAlgError:
-                pass
+                cov = None
         ok = bool(rms <= s.max_rms_px and support >= s.min_support)
-        return Refined(T, rms, support, sig_p, sig_a, ok, sig_s, sig_seen)
+        return Refined(T, rms, support, sig_p, sig_a, ok, sig_s, sig_seen, cov, d2)
 
     def _linearise(self, T: np.ndarray,
                    meas: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]

@@ -56,6 +56,7 @@ from .geometry import nearest_rigid, rotation_angle
 from .needle import Needle
 from .needle_features import NeedleFeatures
 from .needle_refine import (
+    PosePrior,
     PoseRefiner,
     Refined,
     RefineSettings,
@@ -532,10 +533,18 @@ class TrackSettings:
     on the twin would push the swage first); off only for a needle without a thread. A
     continuing track (updates after a converged one, on the same twin) carries its
     decision while no update shows the thread decisively at the other end; one that
-    does puts the track in doubt until fresh evidence decides again. ``slide_drift``
-    (rad): how far a needle whose motion is known (held in closed jaws, or standing in
-    tissue) may slide along its arc from one update to the next; the slide the last
-    update saw, so widened, holds the slide while the jaws or the tissue hide the ends.
+    does puts the track in doubt until fresh evidence decides again.
+
+    The motion prior: a needle whose motion is known (held in closed jaws, or standing in
+    tissue) is where the last refined pose, moved by that motion, puts it, give or take
+    ``slide_drift`` along its arc, ``tilt_drift`` about the other axes (rad) and
+    ``position_drift`` (m) per update (the jaws' hold, the tissue's give and the arm's
+    kinematic error between two poses). The last update's covariance, so widened, is
+    the next update's prior (:class:`.needle_refine.PosePrior`): it holds what the
+    jaws or the tissue hide and what a short baseline barely measures. Where the images
+    put the needle more than ``prior_gate`` (squared Mahalanobis distance) from it, the
+    motion was not what was assumed (a slip): the prior is dropped and the images alone
+    decide. A motion under test (the hold check) carries only the slide.
     """
 
     max_sigma_position: float = 0.0003
@@ -545,6 +554,9 @@ class TrackSettings:
     swage_min: float = 8.0
     require_swage: bool = True      # a threaded needle: base and tip must be told apart
     slide_drift: float = math.radians(1.0)
+    tilt_drift: float = math.radians(0.5)
+    position_drift: float = 0.0001
+    prior_gate: float = 16.0
 
 
 @dataclass(frozen=True)
@@ -590,9 +602,14 @@ class NeedleTracker:
         # the motion since (``_prior``), and whether its base and tip were decided
         self._prior: np.ndarray | None = None
         self._sided = False
-        # what the last refined update knew of the slide, widened by the known motion
-        # (rad; None: the motion was not known, Brownian)
-        self._slide_sigma: float | None = None
+        # what is known of the pose with its covariance (local parameters): the last
+        # refined pose, moved and widened by each known motion since; it outlives an
+        # update that fitted nothing (the jaws and the tissue hid too much), which
+        # leaves the belief as it was. None: a motion was not known (Brownian). And
+        # whether the next update may take it whole or only its slide (a motion under
+        # test)
+        self._belief: tuple[np.ndarray, np.ndarray] | None = None
+        self._prior_full = False
         self.tools: tuple[ToolCylinder, ...] = ()
 
     def set_tools(self, tools: Sequence[ToolCylinder]) -> None:
@@ -621,7 +638,7 @@ class NeedleTracker:
         neither, and a short stereo baseline barely separates them."""
         self.last = None
         self._prior = None
-        self._slide_sigma = None
+        self._belief = None
         self._sided = False
         est = self.filter.initialize([f.distance for f in features], depth_range)
         starts = [est.pose] + ([est.best] if est.best is not None else [])
@@ -633,27 +650,41 @@ class NeedleTracker:
         starts += [T @ S for T in starts for S in _SLIDES]
         return self._finish(features, est, starts)
 
-    def predict(self, delta: np.ndarray | None = None) -> None:
+    def predict(self, delta: np.ndarray | None = None, *, trusted: bool = True) -> None:
         """Motion update: :meth:`NeedleFilter.predict`; the last refined pose moves with
-        the gripper too (it is the refinement's first start next update)."""
+        the gripper too (it is the refinement's first start next update). ``delta``
+        known (a held needle's gripper motion, or the identity for a needle that stays):
+        that pose and its covariance, widened by the drift, are the next update's prior
+        (:class:`TrackSettings`); ``trusted=False``: the motion is what a check tests
+        (did the needle follow the jaws?), or the jaws just closed on the needle and may
+        have shifted it: only the slide is carried."""
         self.filter.predict(delta)
-        self._slide_sigma = None
-        if self.last is not None:
-            T = self.last.pose
-            self._prior = T if delta is None else np.asarray(delta, dtype=float) @ T
-            r = self.last.refined
-            if delta is not None and r is not None and r.ok and math.isfinite(r.sigma_slide):
-                self._slide_sigma = math.hypot(r.sigma_slide, self.s.slide_drift)
+        self._prior_full = trusted
+        if self.last is None:
+            return
+        T = self.last.pose
+        self._prior = T if delta is None else np.asarray(delta, dtype=float) @ T
+        if delta is None or self._belief is None:
+            self._belief = None
+            return
+        s = self.s
+        # local parameters are right-multiplied (frame N): a motion applied on the
+        # left leaves their covariance as it was
+        drift = np.array([s.tilt_drift, s.tilt_drift, s.slide_drift] + 3 * [s.position_drift])
+        T_b, cov = self._belief
+        self._belief = (np.asarray(delta, dtype=float) @ T_b, cov + np.diag(drift ** 2))
 
     def update(self, features: Sequence[NeedleFeatures]) -> NeedleTrack:
         """Measurement update on the current images, then the finish, started from the
         last refined pose (moved) and from the filter's estimate."""
         est = self.filter.update([f.distance for f in features])
         last = self.last
-        # the last pose moved with the gripper, when it was a refined one
+        # what is known of the pose, moved with the gripper: the belief, else the last
+        # pose when it was a refined one
         moved = (self._prior is not None and last is not None and last.refined is not None
                  and last.refined.ok)
-        starts = ([self._prior] if moved else []) + [est.pose]
+        starts = ([self._belief[0]] if self._belief is not None
+                  else [self._prior] if moved else []) + [est.pose]
         return self._finish(features, est, starts)
 
     def _finish(self, features: Sequence[NeedleFeatures], est: NeedleEstimate,
@@ -717,6 +748,12 @@ class NeedleTracker:
             self._sided = False       # decide afresh on the next update's evidence
         self.last = track
         self._prior = None
+        if ref.ok and ref.cov is not None and ref.pose is pose:
+            self._belief = (pose, ref.cov)
+        elif not (ref.ok or self._prior_full):
+            self._belief = None       # a motion under test that nothing confirmed
+        elif ref.ok:
+            self._belief = None       # the twin, whose covariance is not the fit's
         return track
 
     def _determined(self, r: Refined) -> bool:
@@ -732,17 +769,27 @@ class NeedleTracker:
         closer fit. ``first_good``: stop at the first start that fits well (tracking)."""
         s = self.s
         ref: Refined | None = None
-        best: tuple[bool, bool, float] | None = None
-        prior = (None if self._prior is None or self._slide_sigma is None
-                 else (self._prior, self._slide_sigma))
+        best: tuple[bool, bool, bool, float] | None = None
+        prior = None
+        if self._belief is not None:
+            T_b, cov = self._belief
+            prior = (PosePrior.from_cov(T_b, cov) if self._prior_full
+                     else PosePrior.slide(T_b, math.sqrt(cov[2, 2])))
         for T0 in starts:
             r = self.refiner.refine(features, T0, occluder=self.occluder,
-                                    tip_only=s.require_swage, tools=self.tools,
-                                    slide_prior=prior)
-            key = (r.ok, self._determined(r), -r.rms_px)
+                                    tip_only=s.require_swage, tools=self.tools, prior=prior)
+            consistent = True
+            if prior is not None and self._prior_full and r.prior_distance2 > s.prior_gate:
+                # the images disagree with the motion (a slip?): they alone decide, but
+                # a fit that agrees with the motion, from another start, goes first
+                r = self.refiner.refine(features, T0, occluder=self.occluder,
+                                        tip_only=s.require_swage, tools=self.tools)
+                consistent = False
+            key = (r.ok, consistent, self._determined(r), -r.rms_px)
             if best is None or key > best:
                 ref, best = r, key
-            if first_good and r.ok and r.rms_px <= 0.5 * self.refiner.s.max_rms_px:
+            if first_good and consistent and r.ok \
+                    and r.rms_px <= 0.5 * self.refiner.s.max_rms_px:
                 break
         assert ref is not None
         return ref

@@ -118,7 +118,9 @@ class ProcedureSettings:
     regrasp), ``drive_poses``. Motions: ``approach`` (the offset of every grasp's approach
     pose along the gripper's -z, Fig. 5), ``lift`` (the pick-up's lift), ``retreat`` (an
     opened gripper backs off this much), ``hold_check`` (the lift that shows whether a
-    grasp holds: the tracked needle must follow within ``hold_tolerance``).
+    grasp holds: the tracked needle must follow within ``hold_tolerance``);
+    ``pull_tolerance``: how near where the pull took the jaws the needle must be seen
+    after it (the regrasp's hold is shown by the pull).
     Hand-off: ``handoff_heights`` (the needle raised this much above its drive start pose,
     and turned about its centre as little as will do);
     ``separation`` the least arc length between the two grasps; ``view_margin_px`` how far
@@ -165,7 +167,7 @@ class ProcedureSettings:
     jaw_length: float = 0.010
     regrasp_exit_margin: float = 0.002
     regrasp_tip_margin: float = 0.0035
-    regrasp_turn_check: float = math.radians(10.0)
+    pull_tolerance: float = 0.002
     regrasp_points: int = 7
     replan_shift: float = 0.0003
     replan_turn: float = math.radians(1.5)
@@ -201,7 +203,7 @@ class ProcedureSettings:
         for name in ("overshoot", "approach", "lift", "retreat", "hold_check",
                      "hold_tolerance", "separation", "view_margin_px", "regrasp_exit_margin",
                      "regrasp_tip_margin", "depth_window", "placement_tolerance",
-                     "swage_clearance", "pull_lift"):
+                     "swage_clearance", "pull_lift", "pull_tolerance"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise NeedleError(f"needle procedure: {name} must be >= 0, got {v}")
@@ -398,6 +400,8 @@ class NeedleProcedure:
         self.driver: str | None = None
         self.picker: str | None = None
         self.holder: str | None = None        # who the procedure believes holds the needle
+        # the regrasp's pull plan and where the needle lay when the jaws closed (NR to NP)
+        self._pull: tuple[Any, np.ndarray] | None = None
         self.G_TN: np.ndarray | None = None   # its grasp, as last seen by the tracker
         self.tip_plan: np.ndarray | None = None  # where the drive should leave the tip (ref)
         self.in_tissue = False
@@ -475,11 +479,13 @@ class NeedleProcedure:
                 for cam, w, m in zip(self.cams, self._wire_px, self._masks, strict=True)]
 
     def _look(self, delta: np.ndarray | None = None, *, static: bool = True,
-              init: bool = False) -> NeedleTrack:
+              init: bool = False, trusted: bool = True) -> NeedleTrack:
         """Track on fresh frames: a global initialisation (``init``), or ``updates``
         updates, the first predicted with the gripper's motion ``delta`` (a held needle),
         the others with no motion (``static``: held or in the tissue, the grasped noise)
-        or Brownian motion (free)."""
+        or Brownian motion (free). ``trusted=False``: the first motion is what a check
+        tests, or the jaws closed since the last look (the tracker carries only the
+        slide, :meth:`.NeedleTracker.predict`)."""
         s = self.s
         still = np.eye(4) if static else None
         # the grippers where they are now hide part of the needle
@@ -493,7 +499,8 @@ class NeedleProcedure:
         else:
             tr = None
             for k in range(s.updates):
-                self.tracker.predict(delta if k == 0 and delta is not None else still)
+                self.tracker.predict(delta if k == 0 and delta is not None else still,
+                                     trusted=trusted or k > 0)
                 tr = self.tracker.update(self._features())
         assert tr is not None
         self.track = tr
@@ -528,40 +535,52 @@ class NeedleProcedure:
 
     def _verify_hold(self, arm: str, T_goal: np.ndarray, what: str) -> np.ndarray:
         """Move ``arm`` (which should hold the needle) to ``T_goal`` and look: the needle
-        must have moved with the jaws. Returns the tracked ``T_ref_N``.
-
-        The jaws just closed, and closing centres the wire between them (it moves the
-        needle by up to half the open gap): the pose to compare with is a fresh look in
-        the closed jaws, not the one the grasp was aimed on, when that look converges."""
-        assert self.track is not None
-        before = self.track.pose
-        tr = self._look()
-        if tr.converged:
-            before = tr.pose
+        must have moved with the jaws (:meth:`_hold_reference`, :meth:`_followed`).
+        Returns the tracked ``T_ref_N``."""
+        before = self._hold_reference()
         T0 = self.cell.gripper_pose(arm)
         self._move(arm, T_goal, f"{what}: the check motion")
+        return self._followed(arm, before, T0, what, self.s.hold_tolerance)
+
+    def _hold_reference(self) -> np.ndarray:
+        """Where the needle lies in jaws that just closed: closing centres the wire
+        between them (it moves the needle by up to half the open gap), so a fresh look,
+        when it converges, rather than the pose the grasp was aimed on."""
+        assert self.track is not None
+        before = self.track.pose
+        tr = self._look(trusted=False)
+        return tr.pose if tr.converged else before
+
+    def _followed(self, arm: str, before: np.ndarray, T0: np.ndarray, what: str,
+                  tolerance: float) -> np.ndarray:
+        """Look after ``arm`` moved from ``T0``: the needle, at ``before`` when the jaws
+        closed, must lie where the jaws' motion took it (within ``tolerance``, m) and
+        nearer there than where it was. Returns the tracked ``T_ref_N``."""
         delta = self.cell.gripper_pose(arm) @ invert(T0)
-        tr = self._look(delta)
+        # the images must show the hold: the motion is not assumed
+        tr = self._look(delta, trusted=False)
         moved = delta @ before
         if not tr.converged:
-            raise _StepFailed("lost_track", f"{what}: the tracker lost the needle after the "
-                                            f"check motion ({tr.reason})")
+            # not where the jaws took it: perhaps where it was (the jaws let it go)
+            stayed = self._look(invert(delta), trusted=False)
+            if not stayed.converged:
+                raise _StepFailed("lost_track", f"{what}: the tracker lost the needle after "
+                                                f"the check motion ({tr.reason})")
+            tr = stayed
         # distances of the whole arc, not of the centre: a check that turns the needle
-        # about its centre (the regrasp's) leaves the centre where it was. But the slide
-        # along the arc is seen only at the ends: where these views did not measure it
-        # (the jaws and the tissue hide the ends), the tracked slide is the motion
-        # model's, which assumed the hold, and a check that differs only by a slide
-        # proves nothing
+        # about its centre leaves the centre where it was. But the slide along the arc is
+        # seen only at the ends: where these views did not measure it (the jaws and the
+        # tissue hide the ends), the tracked slide is the motion model's, which assumed
+        # the hold, and a check that differs only by a slide proves nothing
         ref = tr.refined
         slide_seen = ref is not None and ref.sigma_slide_seen <= self.s.max_sigma_angle
-        if not slide_seen and self._slide_free_distance(moved, before) \
-                <= 2.0 * self.s.hold_tolerance:
+        if not slide_seen and self._slide_free_distance(moved, before) <= 2.0 * tolerance:
             raise _StepFailed("hold_unseen", f"{what}: the check motion turned the needle "
                                              "along its own arc, and the views do not show "
                                              "its ends: whether it followed is unseen")
         dist = self._arc_distance if slide_seen else self._slide_free_distance
         off, stay = (dist(tr.pose, T) for T in (moved, before))
-        if off > self.s.hold_tolerance or off >= stay:
+        if off > tolerance or off >= stay:
             raise _StepFailed("grasp_missed",
                               f"{what}: the needle did not follow the jaws ({off * 1e3:.2f} mm "
                               f"from where it would be if held, {stay * 1e3:.2f} mm from "
@@ -1038,45 +1057,38 @@ class NeedleProcedure:
         self._move(arm, _back_off(g.T_ref_T, s.approach), "regrasp approach")
         self._move(arm, g.T_ref_T, "regrasp reach")
         self.cell.close(arm)
-        # the check motion: the pull's first few degrees (a held needle turns along its
-        # own track, so the check costs the tissue nothing)
-        k = int(np.searchsorted(pull.betas[:pull.n_turn], s.regrasp_turn_check))
-        k = min(max(k, 1), pull.n_turn - 1)
-        for T in pull.G_PT[:k]:
-            self._move(arm, T, "regrasp check turn")
-        T_N = self._verify_hold(arm, pull.G_PT[k], "regrasp")
-        self.holder, self.G_TN = arm, self._grasp_seen(arm, T_N)
+        # whether the jaws hold the needle is shown by the pull (NP): standing in the
+        # tissue, with the jaws over its tip part, the needle shows too little for a
+        # small check motion to tell a hold from a miss (the jaws hide the tip, the
+        # tissue most of the rest), while out of the tissue after the pull it lies in
+        # full view, many millimetres from where a missed needle stays
+        before = self._hold_reference()
+        G_seen = self._grasp_seen(arm, before)
+        self.holder, self.G_TN = arm, G_seen
+        self._pull = (pull, before)
+        fit = grasp_parameters(G_seen, self.needle.radius)
         return {"arm": arm, "grasp_phi_deg": round(math.degrees(g.params.phi), 2),
+                "seen_phi_deg": round(math.degrees(fit.params.phi), 2),
                 "tip_out_mm": round(out_mm, 2),
                 "shaft_elevation_deg": round(math.degrees(g.elevation), 1)}
 
     def _step_np(self) -> dict[str, Any]:
         s = self.s
         arm = self.holder
-        assert arm is not None and self.G_CS is not None
-        T_N = self._converged("pull")
-        G_TN = self._grasp_seen(arm, T_N)
-        try:
-            pull = pull_poses(np.eye(4), self.G_CS, T_N, G_TN, self.needle, s.pull_poses,
-                              s.swage_clearance, s.pull_lift)
-        except NeedleError as exc:
-            raise _refuse("bad_pull", f"pull: {exc}") from None
-        ok, why = self._reach(arm, list(pull.G_PT))
-        if not ok:
-            raise _refuse("out_of_reach", f"pull: {arm!r} cannot follow the pull ({why})")
+        assert arm is not None and self._pull is not None
+        pull, before = self._pull
         T0 = self.cell.gripper_pose(arm)
         for k, T in enumerate(pull.G_PT):
             self._move(arm, T, f"pull pose {k + 1} of {len(pull.G_PT)}")
-        tr = self._look(self.cell.gripper_pose(arm) @ invert(T0))
-        lowest = float(((self.needle.points(64) @ tr.pose[:3, :3].T + tr.pose[:3, 3]
+        # the regrasp's proof: the needle came out with the jaws
+        T_N = self._followed(arm, before, T0, "pull", s.pull_tolerance)
+        lowest = float(((self.needle.points(64) @ T_N[:3, :3].T + T_N[:3, 3]
                          - self.incision.mean(axis=0)) @ self.normal).min())
-        if not tr.converged:
-            raise _StepFailed("lost_track", f"pull: the tracker lost the needle after the "
-                                            f"pull ({tr.reason})")
         if lowest < 0.0:
             raise _StepFailed("still_in_tissue", f"pull: the tracked needle is still "
                                                  f"{-lowest * 1e3:.2f} mm in the tissue")
         self.in_tissue = False
+        self._pull = None
         self.tracker.set_occluder(None)
         return {"turn_deg": round(math.degrees(float(pull.betas[-1])), 1),
                 "lowest_point_mm": round(lowest * 1e3, 2)}

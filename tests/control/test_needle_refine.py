@@ -16,6 +16,7 @@ from oralnav.control.geometry import transform_from_euler
 from oralnav.control.needle import Needle
 from oralnav.control.needle_features import feature_maps
 from oralnav.control.needle_refine import (
+    PosePrior,
     PoseRefiner,
     RefineSettings,
     TissuePlane,
@@ -366,13 +367,70 @@ def test_slide_prior_holds_the_slide_when_no_end_is_seen():
     ref = PoseRefiner(NEEDLE, [LEFT, RIGHT], RefineSettings(end_weight=0.0))
     start = T_TRUE @ transform_from_euler([0, 0, 0], [0, 0, 4])
     free = ref.refine(feats, start)
-    held = ref.refine(feats, start, slide_prior=(T_TRUE, math.radians(0.5)))
+    held = ref.refine(feats, start, prior=PosePrior.slide(T_TRUE, math.radians(0.5)))
     assert free.sigma_slide > math.radians(10) and _err(free.pose, T_TRUE)[1] > 3.0
     assert _err(held.pose, T_TRUE)[1] < 0.5
     assert held.sigma_slide < math.radians(0.6)
     assert held.sigma_slide_seen > math.radians(10)
     twin = T_TRUE @ transform_from_euler([0, 0, 0], [180, 0, 0])
-    other = ref.refine(feats, start, slide_prior=(twin, math.radians(0.5)))
+    other = ref.refine(feats, start, prior=PosePrior.slide(twin, math.radians(0.5)))
     assert other.sigma_slide > math.radians(10)
-    with pytest.raises(NeedleError, match="slide prior"):
-        ref.refine(feats, start, slide_prior=(T_TRUE, 0.0))
+    with pytest.raises(NeedleError, match="slide's sigma"):
+        PosePrior.slide(T_TRUE, 0.0)
+
+
+def test_pose_prior_fuses_with_the_views_and_shows_a_contradiction():
+    """The motion prior (issue 7, a needle moved by known motion): weighed with one
+    view, the prior (the true pose, 0.1 mm and 0.5 deg) leaves the fit at the truth and
+    its position sigma below both the view's own and the prior's (the two fused); the
+    prior distance is small. A prior 3 mm across the line of sight from the wire the
+    view shows (a slip the motion did not tell) shows as a prior distance beyond the
+    tracker's gate."""
+    feats = _feats([LEFT])
+    ref = PoseRefiner(NEEDLE, [LEFT])
+    ray = T_TRUE[:3, 3] / np.linalg.norm(T_TRUE[:3, 3])
+    start = T_TRUE.copy()
+    start[:3, 3] += 0.0015 * ray
+    cov = np.diag([math.radians(0.5)] * 3 + [1e-4] * 3) ** 2
+    free = ref.refine(feats, start)
+    held = ref.refine(feats, start, prior=PosePrior.from_cov(T_TRUE, cov))
+    assert held.ok and _err(held.pose, T_TRUE)[0] < 5e-5
+    assert held.sigma_position < 0.8 * min(free.sigma_position, 1e-4)
+    assert held.prior_distance2 < 1.0 and free.prior_distance2 == 0.0
+    across = np.cross(ray, [0.0, 0.0, 1.0])
+    off = T_TRUE.copy()
+    off[:3, 3] += 0.003 * across / np.linalg.norm(across)
+    slipped = ref.refine(feats, T_TRUE, prior=PosePrior.from_cov(off, cov))
+    assert slipped.prior_distance2 > TrackSettings().prior_gate
+    with pytest.raises(NeedleError, match="information matrix"):
+        PosePrior(T_TRUE, -np.eye(6))
+    with pytest.raises(NeedleError, match="singular"):
+        PosePrior.from_cov(T_TRUE, np.zeros((6, 6)))
+
+
+def test_tracker_carries_the_motion_prior_and_drops_one_the_views_contradict():
+    """The tracker's motion prior (issue 7): an update that sees nothing (everything
+    hidden) leaves what was known, so after a known 2 mm motion the next update starts
+    from it, weighs it (a non-zero prior distance) and converges on the moved needle.
+    Told the needle stayed while the views show it 1.5 mm away (a slip), the prior fails
+    the gate and the views alone place it."""
+    cams = [LEFT, RIGHT]
+    tracker = NeedleTracker(NEEDLE, cams, FilterSettings(particles=300, seed=1))
+    assert tracker.initialize(_feats(cams, thread=True), (0.07, 0.13)).converged
+    blank = feature_maps(np.full((360, 480), 170, np.uint8), WIRE_PX)
+    tracker.predict(np.eye(4))
+    assert not tracker.update([blank, blank]).converged
+    move = np.eye(4)
+    move[:3, 3] = [0.002, 0.0, 0.0]
+    T2 = move @ T_TRUE
+    tracker.predict(move)
+    track = tracker.update(_feats(cams, T=T2, thread=True))
+    assert track.converged, track.reason
+    assert _err(track.pose, T2)[0] < 1e-4 and track.refined.prior_distance2 > 0.0
+    slip = np.eye(4)
+    slip[:3, 3] = [0.0, 0.0015, 0.0]
+    T3 = slip @ T2
+    tracker.predict(np.eye(4))
+    track = tracker.update(_feats(cams, T=T3, thread=True))
+    assert track.converged, track.reason
+    assert _err(track.pose, T3)[0] < 1e-4 and track.refined.prior_distance2 == 0.0

@@ -180,7 +180,8 @@ def test_a_drive_that_ends_away_from_the_plan_is_caught_before_the_regrasp():
 def test_bench_classes_a_drive_caught_by_the_regrasp_apart_from_undetected():
     """Issue 7, failures classified by cause: a step the procedure believed done whose
     truth failed is `undetected`, unless the next step caught it before moving on it
-    (`caught_by_NR_exit_missed`); a refused or failed step keeps its own cause."""
+    (`caught_by_NR_exit_missed`, `caught_by_NP_grasp_missed`: the pull shows the
+    regrasp's hold); a refused or failed step keeps its own cause."""
     from oralnav.bench.needle import first_failure
 
     def res(step, ok, truth_ok, cause=""):
@@ -193,7 +194,28 @@ def test_bench_classes_a_drive_caught_by_the_regrasp_apart_from_undetected():
     assert f["step"] == "ND" and f["cause"] == "caught_by_NR_exit_missed"
     _, f = first_failure([*ok3, res("ND", True, False), res("NR", False, False, "lost_track")])
     assert f["cause"] == "undetected"
+    ok4 = [*ok3, res("ND", True, True)]
+    _, f = first_failure([*ok4, res("NR", True, False), res("NP", False, False, "grasp_missed")])
+    assert f["step"] == "NR" and f["cause"] == "caught_by_NP_grasp_missed"
+    _, f = first_failure([*ok3, res("ND", True, False), res("NR", False, False, "grasp_missed")])
+    assert f["cause"] == "undetected"       # NR's own grasp says nothing of the drive
     steps, f = first_failure([res("NG", False, False, "refused_out_of_reach")])
     assert f["cause"] == "refused_out_of_reach" and steps == {"NG": False, "NH": None,
                                                             "ND": None, "NR": None, "NP": None}
     assert first_failure([res(s, True, True) for s in STEPS])[1] is None
+
+
+def test_a_regrasp_that_holds_nothing_is_caught_by_the_pull():
+    """Issue 7, the regrasp's hold is shown by the pull (no step moves on a hold it has
+    not seen): on trial 0 the regrasp closes its jaws on the tip; if they then let go
+    (as if they had closed on nothing), the pull's look finds the needle where it was,
+    not where the jaws took it, and NP fails with grasp_missed, not done."""
+    cell, proc = _procedure(0, settings=ProcedureSettings())
+    for step in ("NG", "NH", "ND", "NR"):
+        r = proc.run(step)
+        assert r.ok and r.truth_ok, r
+    cell.open(proc.holder)
+    np_ = proc.run("NP")
+    assert not np_.ok and np_.cause == "grasp_missed", np_
+    assert "did not follow the jaws" in np_.detail
+    assert cell.truth().in_tissue
