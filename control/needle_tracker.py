@@ -542,9 +542,10 @@ class TrackSettings:
     kinematic error between two poses). The last update's covariance, so widened, is
     the next update's prior (:class:`.needle_refine.PosePrior`): it holds what the
     jaws or the tissue hide and what a short baseline barely measures. Where the images
-    put the needle more than ``prior_gate`` (squared Mahalanobis distance) from it, the
-    motion was not what was assumed (a slip): the prior is dropped and the images alone
-    decide. A motion under test (the hold check) carries only the slide.
+    alone put the needle more than ``prior_gate`` (squared Mahalanobis distance, their
+    covariance and the prior's summed) from it, the motion was not what was assumed (a
+    slip): the prior is dropped and the images alone decide. A motion under test (the
+    hold check) carries only the slide.
     """
 
     max_sigma_position: float = 0.0003
@@ -780,11 +781,22 @@ class NeedleTracker:
                                     tip_only=s.require_swage, tools=self.tools, prior=prior)
             consistent = True
             if prior is not None and self._prior_full and r.prior_distance2 > s.prior_gate:
-                # the images disagree with the motion (a slip?): they alone decide, but
-                # a fit that agrees with the motion, from another start, goes first
-                r = self.refiner.refine(features, T0, occluder=self.occluder,
-                                        tip_only=s.require_swage, tools=self.tools)
-                consistent = False
+                # the fit moved far from the prior: do the images alone contradict it
+                # (a slip), beyond both their uncertainty and the prior's? Where they
+                # leave a direction free (the slide with both ends hidden), they cannot
+                # contradict it there, and the prior's fit stands
+                alone = self.refiner.refine(features, T0, occluder=self.occluder,
+                                            tip_only=s.require_swage, tools=self.tools)
+                if alone.ok and _contradicts(prior, alone, s.prior_gate):
+                    # they decide, but a fit that agrees with the motion, from another
+                    # start, goes first; the slide they do not see stays the prior's
+                    r, consistent = alone, False
+                    if not math.isfinite(alone.sigma_slide_seen) \
+                            or alone.sigma_slide_seen > s.max_sigma_angle:
+                        r = self.refiner.refine(
+                            features, T0, occluder=self.occluder, tip_only=s.require_swage,
+                            tools=self.tools,
+                            prior=PosePrior.slide(prior.pose, math.sqrt(self._belief[1][2, 2])))
             key = (r.ok, consistent, self._determined(r), -r.rms_px)
             if best is None or key > best:
                 ref, best = r, key
@@ -807,6 +819,24 @@ class NeedleTracker:
         f.t[idx] = pose[:3, 3]
         if f.last is not None:
             f.last = replace(f.last, pose=pose, pose_alt=pose @ _flip4(f.flip))
+
+
+def _contradicts(prior: PosePrior, alone: Refined, gate: float) -> bool:
+    """Whether a fit of the images alone lies further than ``gate`` (squared
+    Mahalanobis distance, the prior's and the fit's covariances summed) from the
+    prior: the innovation test of a Kalman filter's validation gate."""
+    if alone.cov is None:
+        return False
+    e, J = prior.residual(alone.pose)
+    try:
+        P = np.linalg.inv(prior.info)
+    except np.linalg.LinAlgError:
+        return False
+    S = J @ alone.cov @ J.T + P
+    try:
+        return float(e @ np.linalg.solve(S, e)) > gate
+    except np.linalg.LinAlgError:
+        return False
 
 
 def _slide(deg: float) -> np.ndarray:

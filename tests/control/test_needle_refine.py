@@ -434,3 +434,22 @@ def test_tracker_carries_the_motion_prior_and_drops_one_the_views_contradict():
     track = tracker.update(_feats(cams, T=T3, thread=True))
     assert track.converged, track.reason
     assert _err(track.pose, T3)[0] < 1e-4 and track.refined.prior_distance2 == 0.0
+
+
+def test_the_gate_weighs_what_the_views_leave_free():
+    """The tracker's validation gate (issue 7): a fit of the views alone 5 deg along the
+    arc from the prior (sigma 1 deg) contradicts it when the views measured that slide,
+    and does not when they left it free (both ends hidden): they cannot contradict what
+    they do not see."""
+    from oralnav.control.needle_refine import Refined
+    from oralnav.control.needle_tracker import _contradicts
+
+    cov = np.diag([math.radians(1.0)] * 3 + [1e-4] * 3) ** 2
+    prior = PosePrior.from_cov(T_TRUE, cov)
+    slid = T_TRUE @ transform_from_euler([0, 0, 0], [0, 0, 5])
+    seen = np.diag([math.radians(0.2)] * 3 + [5e-5] * 3) ** 2
+    free = seen.copy()
+    free[2, 2] = 1.0
+    gate = TrackSettings().prior_gate
+    assert _contradicts(prior, Refined(slid, 0.2, 1.0, 5e-5, 0.003, True, cov=seen), gate)
+    assert not _contradicts(prior, Refined(slid, 0.2, 1.0, 5e-5, 1.0, True, cov=free), gate)
