@@ -116,7 +116,8 @@ class ProcedureSettings:
     Suture: ``depth`` (the surgeon's d), ``suture_at`` (where along the incision, 0 its
     start, 1 its end), ``overshoot`` (arc the tip is driven past the exit, for the
     regrasp), ``drive_poses``. Motions: ``approach`` (the offset of every grasp's approach
-    pose along the gripper's -z, Fig. 5), ``lift`` (the pick-up's lift), ``retreat`` (an
+    pose along the gripper's -z, Fig. 5), ``lift`` (the pick-up's lift; ``lift_low`` when
+    no grasp's needle, lifted that far, is seen well), ``retreat`` (an
     opened gripper backs off this much), ``hold_check`` (the lift that shows whether a
     grasp holds: the tracked needle must follow within ``hold_tolerance``);
     ``pull_tolerance``: how near where the pull took the jaws the needle must be seen
@@ -153,6 +154,7 @@ class ProcedureSettings:
     pull_lift: float = 0.010
     approach: float = 0.005
     lift: float = 0.010
+    lift_low: float = 0.005
     retreat: float = 0.010
     hold_check: float = 0.003
     hold_tolerance: float = 0.001
@@ -191,16 +193,18 @@ class ProcedureSettings:
                                                approach_elevation=math.radians(5.0))
     pickup_grasp: SurfaceGraspSettings = SurfaceGraspSettings()
     # the tip part stands steeply out of the exit, and a jaw square to the wire then holds
-    # the shaft low: the regrasp takes shafts down to 5 deg above the flat pad (the shaft
-    # rises away from it), the wire at least 1.5 mm up so the jaws' lower edge (half
-    # their 2.5 mm width below it) stays off the surface; fine gripper angles, since
-    # the few that fit are narrow
-    regrasp: SurfaceGraspSettings = SurfaceGraspSettings(min_elevation=math.radians(5.0),
+    # the shaft low: the regrasp takes shafts down to 2 deg above the flat pad (the shaft
+    # rises away from it; the pull's turn is a roll of the wrist only with the shaft
+    # near the needle's axis, and at 5 deg no pull stayed in the wrist's reach on 4 of
+    # 40 trials), the wire at least 1.5 mm up so the jaws' lower edge (half their
+    # 2.5 mm width below it) stays off the surface; fine gripper angles, since the few
+    # that fit are narrow
+    regrasp: SurfaceGraspSettings = SurfaceGraspSettings(min_elevation=math.radians(2.0),
                                                          min_tip_height=0.0015,
                                                          w2_steps=72)
 
     def __post_init__(self) -> None:
-        for name in ("overshoot", "approach", "lift", "retreat", "hold_check",
+        for name in ("overshoot", "approach", "lift", "lift_low", "retreat", "hold_check",
                      "hold_tolerance", "separation", "view_margin_px", "regrasp_exit_margin",
                      "regrasp_tip_margin", "depth_window", "placement_tolerance",
                      "swage_clearance", "pull_lift", "pull_tolerance"):
@@ -724,36 +728,41 @@ class NeedleProcedure:
             raise _refuse("no_grasp", "no part of the needle is free for the pick-up grasp "
                                       f"{s.separation * 1e3:.1f} mm from the driving grasp")
         point = self.incision.mean(axis=0)
-        up = _translation(s.lift * self.normal)
         why: dict[str, int] = {}
         handoffs = self._handoff_candidates()
-        chosen: tuple[SurfaceGrasp, np.ndarray] | None = None
+        chosen: tuple[SurfaceGrasp, np.ndarray, np.ndarray] | None = None
         # of the grasps the arm reaches and sees past, the first that also has a hand-off
         # pose: the pick-up decides how the needle sits in the holder's jaws, and so where
-        # the two arms can meet
+        # the two arms can meet. The full lift first; a needle near the pad's edge,
+        # lifted that far, may stand against the dark beyond it, and a lower lift keeps
+        # it against the tissue
         grasps = [g for phi in phis for g in surface_grasps(
             self.needle, T_N, float(phi), point, self.normal, s.pickup_grasp)]
         grasps.sort(key=lambda g: -g.elevation)
-        for g in grasps:
-            ok, _ = self._reach(arm, [g.T_ref_T, _back_off(g.T_ref_T, s.approach),
-                                      up @ g.T_ref_T])
-            if not ok:
-                why["out of reach"] = why.get("out of reach", 0) + 1
-                continue
-            seen = self._view(up @ T_N, [up @ g.T_ref_T])
-            if seen:
-                why[f"lifted needle {seen}"] = why.get(f"lifted needle {seen}", 0) + 1
-                continue
-            T_h = self._meeting(g.G_TN, handoffs, None, why)
-            if T_h is not None:
-                chosen = (g, T_h)
+        for lift in sorted({s.lift, min(s.lift, s.lift_low)}, reverse=True):
+            up = _translation(lift * self.normal)
+            for g in grasps:
+                ok, _ = self._reach(arm, [g.T_ref_T, _back_off(g.T_ref_T, s.approach),
+                                          up @ g.T_ref_T])
+                if not ok:
+                    why["out of reach"] = why.get("out of reach", 0) + 1
+                    continue
+                seen = self._view(up @ T_N, [up @ g.T_ref_T])
+                if seen:
+                    why[f"lifted needle {seen}"] = why.get(f"lifted needle {seen}", 0) + 1
+                    continue
+                T_h = self._meeting(g.G_TN, handoffs, None, why)
+                if T_h is not None:
+                    chosen = (g, T_h, up)
+                    break
+            if chosen is not None:
                 break
         if chosen is None:
             raise _refuse("out_of_reach", f"arm {arm!r} has no pick-up grasp of the tracked "
                                           f"needle that leads to a hand-off ("
                                           + ", ".join(f"{k}: {v}" for k, v in why.items())
                                           + ")")
-        g, _ = chosen
+        g, _, up = chosen
         self._move(arm, _back_off(g.T_ref_T, s.approach), "pick-up approach")
         self._move(arm, g.T_ref_T, "pick-up reach")
         self.cell.close(arm)
@@ -761,7 +770,8 @@ class NeedleProcedure:
         self.holder, self.G_TN = arm, self._grasp_seen(arm, T_N)
         figures.update(arm=arm, grasp_phi_deg=round(math.degrees(g.params.phi), 2),
                        shaft_elevation_deg=round(math.degrees(g.elevation), 1),
-                       pickup_candidates=len(grasps))
+                       pickup_candidates=len(grasps),
+                       lift_mm=round(float(up[:3, 3] @ self.normal) * 1e3, 1))
         return figures
 
     def _handoff_candidates(self) -> list[tuple[np.ndarray, np.ndarray, float, float]]:

@@ -219,3 +219,17 @@ def test_a_regrasp_that_holds_nothing_is_caught_by_the_pull():
     assert not np_.ok and np_.cause == "grasp_missed", np_
     assert "did not follow the jaws" in np_.detail
     assert cell.truth().in_tissue
+
+
+def test_a_needle_near_the_pads_edge_is_lifted_less():
+    """Issue 7, the pick-up (NG): on trial 37 the needle lies near the pad's edge, and
+    lifted the full 10 mm it would stand against the dark beyond the edge in a view
+    (the thin-feature measurement needs the tissue behind it); the pick-up then lifts
+    it 5 mm (`lift_low`) rather than refusing, and the picker holds it (truth)."""
+    cell, proc = _procedure(37, settings=ProcedureSettings())
+    ng = proc.run("NG")
+    assert ng.ok and ng.truth_ok, ng
+    assert ng.figures["lift_mm"] == 5.0
+    _, high = _procedure(37, settings=ProcedureSettings(lift_low=0.010))
+    refused = high.run("NG")
+    assert refused.refused and "not against the tissue" in refused.detail, refused
