@@ -258,9 +258,10 @@ class PosePrior:
         T, info = np.asarray(self.pose, dtype=float), np.asarray(self.info, dtype=float)
         if not (T.shape == (4, 4) and np.all(np.isfinite(T))):
             raise NeedleError(f"pose prior: need a finite 4x4 pose, got shape {T.shape}")
-        if not (info.shape == (6, 6) and np.all(np.isfinite(info))
-                and np.allclose(info, info.T, atol=1e-9 * max(1.0, float(np.abs(info).max())))
-                and np.linalg.eigvalsh(info).min() >= -1e-9 * max(1.0, float(np.abs(info).max()))):
+        finite = info.shape == (6, 6) and bool(np.all(np.isfinite(info)))
+        tol = 1e-9 * max(1.0, float(np.abs(info).max())) if finite else 0.0
+        if not (finite and np.allclose(info, info.T, atol=tol)
+                and np.linalg.eigvalsh(info).min() >= -tol):
             raise NeedleError("pose prior: the information matrix must be a finite, "
                               "symmetric, positive semi-definite 6x6")
         object.__setattr__(self, "pose", T)
@@ -298,11 +299,6 @@ class PosePrior:
         J = np.eye(6)
         J[3:, 3:] = Rp.T @ R
         return e, J
-
-    def distance2(self, T: np.ndarray) -> float:
-        """Squared Mahalanobis distance of ``T`` from the prior (its known directions)."""
-        e, _ = self.residual(T)
-        return float(e @ self.info @ e)
 
 
 #: Forward-difference step of the refinement's Jacobian (rad, m).
@@ -610,14 +606,16 @@ class PoseRefiner:
                     # a touch of damping keeps a weak direction (a single view's depth)
                     # from running away before the next search; a direction the prior
                     # holds needs none, and damping there would only slow the prior
-                    damp[np.diag(prior.info) > 0] = 0.0
+                    held = np.diag(prior.info) > 0
+                    damp[held, held] = 0.0
                 step = np.linalg.solve(Hs + damp, -gs)
                 T = _perturb(T, step)
         sig_a = sig_p = sig_s = sig_seen = math.inf
         cov = None
-        d2 = 0.0
+        d2, Jp = 0.0, None
         if prior is not None:
-            d2 = prior.distance2(T)
+            e, Jp = prior.residual(T)
+            d2 = float(e @ prior.info @ e)
         if H is not None:
             # the last round's normal equations; residual scale floored at 0.1 px so a
             # perfect synthetic fit does not claim a perfect pose
@@ -627,7 +625,6 @@ class PoseRefiner:
             except np.linalg.LinAlgError:
                 pass
             if prior is not None:
-                _, Jp = prior.residual(T)
                 info = info + Jp.T @ prior.info @ Jp
             try:
                 cov = np.linalg.inv(info)

@@ -749,12 +749,14 @@ class NeedleTracker:
             self._sided = False       # decide afresh on the next update's evidence
         self.last = track
         self._prior = None
-        if ref.ok and ref.cov is not None and ref.pose is pose:
-            self._belief = (pose, ref.cov)
-        elif not (ref.ok or self._prior_full):
+        if ref.ok:
+            # not for the twin taken without a fit of its own: the covariance is the
+            # fit's, in the other twin's frame
+            self._belief = (pose, ref.cov) if ref.cov is not None and ref.pose is pose \
+                else None
+        elif not self._prior_full:
             self._belief = None       # a motion under test that nothing confirmed
-        elif ref.ok:
-            self._belief = None       # the twin, whose covariance is not the fit's
+        # else: the update fitted nothing, and what was known stands
         return track
 
     def _determined(self, r: Refined) -> bool:
@@ -771,32 +773,33 @@ class NeedleTracker:
         s = self.s
         ref: Refined | None = None
         best: tuple[bool, bool, bool, float] | None = None
-        prior = None
+        prior = slide_only = None
         if self._belief is not None:
             T_b, cov = self._belief
-            prior = (PosePrior.from_cov(T_b, cov) if self._prior_full
-                     else PosePrior.slide(T_b, math.sqrt(cov[2, 2])))
+            slide_only = PosePrior.slide(T_b, math.sqrt(cov[2, 2]))
+            prior = PosePrior.from_cov(T_b, cov) if self._prior_full else slide_only
+
+        def fit(T0: np.ndarray, p: PosePrior | None) -> Refined:
+            return self.refiner.refine(features, T0, occluder=self.occluder,
+                                       tip_only=s.require_swage, tools=self.tools, prior=p)
+
         for T0 in starts:
-            r = self.refiner.refine(features, T0, occluder=self.occluder,
-                                    tip_only=s.require_swage, tools=self.tools, prior=prior)
+            r = fit(T0, prior)
             consistent = True
             if prior is not None and self._prior_full and r.prior_distance2 > s.prior_gate:
                 # the fit moved far from the prior: do the images alone contradict it
                 # (a slip), beyond both their uncertainty and the prior's? Where they
                 # leave a direction free (the slide with both ends hidden), they cannot
                 # contradict it there, and the prior's fit stands
-                alone = self.refiner.refine(features, T0, occluder=self.occluder,
-                                            tip_only=s.require_swage, tools=self.tools)
-                if alone.ok and _contradicts(prior, alone, s.prior_gate):
+                assert self._belief is not None
+                alone = fit(T0, None)
+                if alone.ok and _contradicts(prior, self._belief[1], alone, s.prior_gate):
                     # they decide, but a fit that agrees with the motion, from another
                     # start, goes first; the slide they do not see stays the prior's
                     r, consistent = alone, False
                     if not math.isfinite(alone.sigma_slide_seen) \
                             or alone.sigma_slide_seen > s.max_sigma_angle:
-                        r = self.refiner.refine(
-                            features, T0, occluder=self.occluder, tip_only=s.require_swage,
-                            tools=self.tools,
-                            prior=PosePrior.slide(prior.pose, math.sqrt(self._belief[1][2, 2])))
+                        r = fit(T0, slide_only)
             key = (r.ok, consistent, self._determined(r), -r.rms_px)
             if best is None or key > best:
                 ref, best = r, key
@@ -821,18 +824,15 @@ class NeedleTracker:
             f.last = replace(f.last, pose=pose, pose_alt=pose @ _flip4(f.flip))
 
 
-def _contradicts(prior: PosePrior, alone: Refined, gate: float) -> bool:
+def _contradicts(prior: PosePrior, prior_cov: np.ndarray, alone: Refined,
+                 gate: float) -> bool:
     """Whether a fit of the images alone lies further than ``gate`` (squared
-    Mahalanobis distance, the prior's and the fit's covariances summed) from the
-    prior: the innovation test of a Kalman filter's validation gate."""
+    Mahalanobis distance, the prior's covariance ``prior_cov`` and the fit's summed)
+    from the prior: the innovation test of a Kalman filter's validation gate."""
     if alone.cov is None:
         return False
     e, J = prior.residual(alone.pose)
-    try:
-        P = np.linalg.inv(prior.info)
-    except np.linalg.LinAlgError:
-        return False
-    S = J @ alone.cov @ J.T + P
+    S = J @ alone.cov @ J.T + prior_cov
     try:
         return float(e @ np.linalg.solve(S, e)) > gate
     except np.linalg.LinAlgError:

@@ -451,5 +451,6 @@ def test_the_gate_weighs_what_the_views_leave_free():
     free = seen.copy()
     free[2, 2] = 1.0
     gate = TrackSettings().prior_gate
-    assert _contradicts(prior, Refined(slid, 0.2, 1.0, 5e-5, 0.003, True, cov=seen), gate)
-    assert not _contradicts(prior, Refined(slid, 0.2, 1.0, 5e-5, 1.0, True, cov=free), gate)
+    assert _contradicts(prior, cov, Refined(slid, 0.2, 1.0, 5e-5, 0.003, True, cov=seen), gate)
+    assert not _contradicts(prior, cov, Refined(slid, 0.2, 1.0, 5e-5, 1.0, True, cov=free),
+                            gate)
