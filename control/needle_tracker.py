@@ -702,13 +702,17 @@ class NeedleTracker:
         # (the other is a half turn away, and each update starts from the last pose)
         carried = (self._sided and self._prior is not None
                    and rotation_angle(self._prior[:3, :3].T @ pose[:3, :3]) < 0.5 * math.pi)
-        if (ref.ok and s.require_swage and swage < s.swage_min) \
+        initial = self.last is None and self._prior is None     # initialize()'s finish
+        if (ref.ok and s.require_swage and (swage < s.swage_min or initial)) \
                 or (not carried and swage < -s.swage_min):
-            # the thread does not confirm this twin: the other, fitted again (with its
-            # own tip as the end that holds the slide) and from it slid both ways (the
-            # twin of a pose slid onto the thread is slid as far the other way, its tip
-            # short of the true tip). A carried decision yields only to decisive
-            # evidence for the other twin
+            # the thread does not confirm this twin, or the track starts afresh: the
+            # other, fitted again (with its own tip as the end that holds the slide) and
+            # from it slid both ways (the twin of a pose slid onto the thread is slid as
+            # far the other way, its tip short of the true tip). The initialisation takes
+            # the better of the two: the wrong twin's fit can itself slide its tip on
+            # along the thread and its base back inside the wire, which beyond the base
+            # then reads as thread (seed 17: +10 DN for it, +28 for the right one). A
+            # carried decision yields only to decisive evidence for the other twin
             twin = pose.copy()
             twin[:3, :3] = pose[:3, :3] @ self.filter.flip
             twin_ref = ref
