@@ -208,10 +208,16 @@ async def test_control_process_runs_and_stops_on_request() -> None:
     await proc.start()
     try:
         import time
-        for _ in range(25):  # 0.25 s of fresh goals
+        # fresh goals every 10 ms until the loop has servoed 50 periods (0.1 s at
+        # 500 Hz): a loaded machine starts the process late, so the wait is not a
+        # fixed time, but the loop must get there within 5 s
+        deadline = time.monotonic() + 5.0
+        while True:
             proc.set_goal(_pose(0.02), time.monotonic(), move=True)
             await anyio.sleep(0.01)
-        st = proc.read_status()
+            st = proc.read_status()
+            if st["motion_commands"] > 50 or time.monotonic() > deadline:
+                break
         assert st["periods"] > 50 and st["motion_commands"] > 50 and not st["latched"]
         assert st["T_B_tcp"][0, 3] > 0.0
         t0 = time.monotonic()
