@@ -73,6 +73,7 @@ CMD_DTYPE = np.dtype([
     ("stop_count", "i8"),
     ("stop_reason", f"S{240}"),
     ("clear_count", "i8"),         # bumped by the daemon after an authenticated reset
+    ("stops_cleared", "i8"),       # stop_count when that reset was made: it ends those
     ("shutdown", "?"),
 ])
 
@@ -234,6 +235,9 @@ class ControlLoop:
 
         if int(cmd["clear_count"]) != self._clear_seen:
             self._clear_seen = int(cmd["clear_count"])
+            # a stop requested before the reset, and not yet seen, is over with it: on a
+            # late period both arrive together and must not latch the loop again
+            self._stop_seen = max(self._stop_seen, int(cmd["stops_cleared"]))
             self._unlatch(arm)
         reason = self._trip_reason(now, arm, wrist, nav, cmd)
         if reason is not None and not self._latched:

@@ -231,7 +231,7 @@ class ControlPort:
         """After an authenticated reset: let the loop command again."""
         if self.cmd is not None:
             self._clears += 1
-            self.cmd.write(clear_count=self._clears)
+            self.cmd.write(clear_count=self._clears, stops_cleared=self._stops)
 
     def set_goal(self, T_B_tcp: np.ndarray, t_pose: float, *, move: bool,
                  near_point: np.ndarray | None = None, wrist: np.ndarray | None = None

@@ -3,12 +3,18 @@
 The 500 Hz control loop runs in a process of its own (docs/control_loop.md shows why: a
 thread behind the GIL missed its period by up to 2-3 ms while tracking ran). The two
 processes exchange a few fixed-size records, each a numpy structured scalar in a
-``multiprocessing.shared_memory`` block guarded by a sequence lock:
+``multiprocessing.shared_memory`` block: two copies of the record and a sequence number.
 
-- one writer per record; the writer makes the sequence odd, writes, makes it even again;
-- a reader copies the record between two reads of the sequence and retries when the
-  sequence was odd or moved, so it never sees a half-written record and never blocks the
-  writer (the control loop must not wait on anything).
+- One writer per record (a lock serialises the writer's threads). The sequence is odd while
+  a write is under way and even when none is; ``sequence // 2`` records are complete, the
+  latest in copy ``(sequence // 2) % 2``, and a write fills the other copy.
+- A reader copies the latest complete record and keeps it if the writer did not start on
+  that same copy meanwhile (two writes later); otherwise it reads again.
+
+So neither side waits on the other. A single copy under a plain sequence lock made the
+reader wait out a write the daemon had begun: a writer thread that lost the GIL mid-write
+held the 2 ms loop for 27 ms here and 57-130 ms on a loaded CI machine, and the deadline
+watchdog stopped the arm.
 
 Records hold numbers only (poses as 4x4 float64 in metres, times in seconds on the
 daemon's clock, flags as bools, reasons as fixed-size UTF-8 bytes).
@@ -16,7 +22,7 @@ daemon's clock, flags as bools, reasons as fixed-size UTF-8 bytes).
 
 from __future__ import annotations
 
-import time
+import threading
 from multiprocessing import shared_memory
 from typing import Any
 
@@ -40,7 +46,7 @@ class SharedRecord:
 
     def __init__(self, dtype: np.dtype, name: str | None = None) -> None:
         self.dtype = np.dtype(dtype)
-        size = 8 + self.dtype.itemsize  # uint64 sequence, then the record
+        size = 8 + 2 * self.dtype.itemsize  # uint64 sequence, then two copies
         self._owner = name is None
         try:
             self._shm = shared_memory.SharedMemory(name=name, create=self._owner, size=size)
@@ -48,35 +54,42 @@ class SharedRecord:
             raise ShmError(f"shared record {name or '(new)'}: {exc}") from exc
         buf = self._shm.buf
         self._seq = np.ndarray((1,), dtype=np.uint64, buffer=buf, offset=0)
-        self._rec = np.ndarray((1,), dtype=self.dtype, buffer=buf, offset=8)
+        self._rec = np.ndarray((2,), dtype=self.dtype, buffer=buf, offset=8)
+        self._lock = threading.Lock()
+        self._mine: np.void | None = None  # the writer's copy of its latest record
         if self._owner:
             self._seq[0] = 0
-            self._rec[0] = np.zeros((), dtype=self.dtype)
+            self._rec[:] = np.zeros((), dtype=self.dtype)
 
     @property
     def name(self) -> str:
         return self._shm.name
 
     def write(self, **values: Any) -> None:
-        """Set the named fields (the others keep their values) as one update."""
-        self._seq[0] += np.uint64(1)           # odd: a write is under way
-        rec = self._rec[0]
-        for key, value in values.items():
-            rec[key] = value
-        self._seq[0] += np.uint64(1)           # even: the record is whole again
+        """Set the named fields (the others keep their values) as one update. Never waits
+        on a reader."""
+        with self._lock:
+            if self._mine is None:  # first write from this side: start from what is there
+                self._mine = self.read()
+            mine = self._mine
+            for key, value in values.items():
+                mine[key] = value
+            done = int(self._seq[0]) // 2
+            self._seq[0] = np.uint64(2 * done + 1)       # odd: filling the other copy
+            self._rec[(done + 1) % 2] = mine
+            self._seq[0] = np.uint64(2 * done + 2)       # even: that copy is the latest
 
     def read(self, retries: int = 10_000) -> np.void:
-        """A consistent copy of the record."""
+        """A consistent copy of the latest complete record. Never waits on the writer: it
+        retries only when the writer got two writes ahead during the copy."""
         for _ in range(retries):
-            s0 = int(self._seq[0])
-            if s0 & 1:
-                time.sleep(0)  # the writer is mid-update; let it finish
-                continue
-            copy = self._rec[0].copy()
-            if int(self._seq[0]) == s0:
+            done = int(self._seq[0]) // 2
+            copy = self._rec[done % 2].copy()
+            # the writer starts on this copy again at sequence 2 * done + 3
+            if int(self._seq[0]) < 2 * done + 3:
                 return copy
         raise ShmError(f"shared record {self.name}: no consistent read in {retries} tries "
-                       "(is its writer stuck mid-update?)")
+                       "(is its writer writing without pause?)")
 
     @property
     def sequence(self) -> int:

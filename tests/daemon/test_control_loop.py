@@ -26,6 +26,8 @@ from oralnav.drivers.clock import VirtualClock
 from oralnav.drivers.effector.sim import SimEffector
 from oralnav.safety.limits import SpeedLimiter
 
+from ..helpers import LOADED_MACHINE
+
 SETTINGS = LoopSettings(rate_hz=500.0, stale_pose=0.1, driver_silence=0.05,
                         deadline_misses=3, max_period_lateness=0.01)
 P = SETTINGS.period
@@ -198,12 +200,35 @@ def test_clear_resumes_from_where_the_arm_is(cell: Cell) -> None:
     assert abs(cell.arm.state().T_B_tcp[0, 3] - 0.05) < 1e-6
 
 
+def test_a_reset_ends_the_stops_requested_before_it(cell: Cell) -> None:
+    """A reset ends every stop the daemon requested before it: a late period that finds
+    the daemon's own stop (sent when it latched the loop's fault) and the reset together
+    resumes rather than latching again (a FAULT right after every such reset on a loaded
+    machine); a stop requested after the reset still latches."""
+    cell.goal(0.05)
+    cell.run(10)
+    cell.cmd.write(stop_count=1, stop_reason=encode_reason("arm protective stop"))
+    cell.run(1)
+    assert cell.status.read()["latched"]
+    # the daemon's stop and then the operator's reset, before the loop's next period
+    cell.cmd.write(stop_count=2, stop_reason=encode_reason("control loop: first"))
+    cell.cmd.write(clear_count=1, stops_cleared=2)
+    cell.run(1)
+    st = cell.status.read()
+    assert not st["latched"] and int(st["clear_count_seen"]) == 1
+    cell.cmd.write(stop_count=3, stop_reason=encode_reason("after the reset"))
+    cell.run(1)
+    st = cell.status.read()
+    assert st["latched"] and "after the reset" in bytes(st["stop_reason"]).decode()
+
+
 async def test_control_process_runs_and_stops_on_request() -> None:
     """The spawned control process servoes the sim arm on the wall clock, stops it on a
     stop request within a few periods, sends nothing after, and exits on close."""
     proc = ControlProcess(ProcessSpec(
         arm=DriverSpec("sim", {"home": _pose()}), effector=DriverSpec("sim"),
-        settings=LoopSettings(rate_hz=500.0, stale_pose=0.5, driver_silence=0.2),
+        settings=LoopSettings(rate_hz=500.0, stale_pose=0.5, driver_silence=0.2,
+                              **LOADED_MACHINE),
         limiter=SpeedLimiter(0.25, 0.5)))
     await proc.start()
     try:

@@ -25,6 +25,8 @@ from oralnav.drivers.io.sim import SimInputs
 from oralnav.safety.limits import SpeedLimiter
 from oralnav.safety.watchdogs import WatchdogSet
 
+from ..helpers import LOADED_MACHINE
+
 
 def _home() -> np.ndarray:
     T = np.eye(4)
@@ -37,7 +39,8 @@ async def rig(tmp_path: Path):
     cfg = load_config()
     proc = ControlProcess(ProcessSpec(
         arm=DriverSpec("sim", {"home": _home()}), effector=DriverSpec("sim"),
-        settings=LoopSettings(rate_hz=500.0, stale_pose=0.5, driver_silence=0.2),
+        settings=LoopSettings(rate_hz=500.0, stale_pose=0.5, driver_silence=0.2,
+                              **LOADED_MACHINE),
         limiter=SpeedLimiter(0.25, 0.5)))
     await proc.start()
     inputs = SimInputs()
