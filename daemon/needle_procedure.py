@@ -765,33 +765,47 @@ class NeedleProcedure:
 
     # -- planning -------------------------------------------------------------------------
     def _plan(self) -> dict[str, Any]:
-        """The suture and the driving arm with its grasp (before anything moves)."""
+        """The suture and the driving arm with its grasp (before anything moves).
+
+        The needle crosses the incision from the side its direction sets (entry at -x_S).
+        Where no arm can drive it that way, the drive runs the other way across the same
+        point (the incision's ends swapped): a backhand stitch for a forehand one, the
+        same suture, with the wrist turning the other way about the incision."""
         s, inc = self.s, self.incision
         point = inc[0] + s.suture_at * (inc[1] - inc[0])
         try:
             self.geometry = SutureGeometry.for_needle(self.needle, s.depth)
-            self.G_CS = tissue_frame(inc[0], inc[1], self.normal, suture_point=point)
-            drive = plan_drive(np.eye(4), self.G_CS, self.geometry, s.drive_poses,
-                               overshoot=s.overshoot)
         except NeedleError as exc:
             raise _refuse("bad_suture", str(exc)) from None
-        options, why = [], {}
-        pick = replace(s.drive_grasp, swage_margin=s.drive_grasp.swage_margin + s.grasp_margin)
-        for arm in self.arms:
+        why: dict[str, str] = {}
+        for ends, way in ((inc, "as given"), (inc[::-1], "reversed")):
             try:
-                choice = select_grasp(self.needle, drive, pick,
-                                      reachable=lambda T, a=arm: self.cell.reachable(a, T)[0])
+                G_CS = tissue_frame(ends[0], ends[1], self.normal, suture_point=point)
+                drive = plan_drive(np.eye(4), G_CS, self.geometry, s.drive_poses,
+                                   overshoot=s.overshoot)
             except NeedleError as exc:
-                why[arm] = str(exc)
-                continue
-            options.append((choice.score, arm, choice))
-        if not options:
-            raise _refuse("out_of_reach", "no arm can drive this suture: " + "; ".join(
-                f"{a}: {w}" for a, w in why.items()))
+                raise _refuse("bad_suture", str(exc)) from None
+            options = []
+            pick = replace(s.drive_grasp,
+                           swage_margin=s.drive_grasp.swage_margin + s.grasp_margin)
+            for arm in self.arms:
+                try:
+                    choice = select_grasp(
+                        self.needle, drive, pick,
+                        reachable=lambda T, a=arm: self.cell.reachable(a, T)[0])
+                except NeedleError as exc:
+                    why[f"{arm} ({way})"] = str(exc)
+                    continue
+                options.append((choice.score, arm, choice))
+            if options:
+                break
+        else:
+            raise _refuse("out_of_reach", "no arm can drive this suture either way: "
+                          + "; ".join(f"{a}: {w}" for a, w in why.items()))
         _, self.driver, self.drive_choice = max(options, key=lambda o: o[0])
         self.picker = next(a for a in self.arms if a != self.driver)
-        self.drive = drive
-        return {"driver": self.driver, "picker": self.picker,
+        self.G_CS, self.drive = G_CS, drive
+        return {"driver": self.driver, "picker": self.picker, "drive_direction": way,
                 "drive_grasp_phi_deg": round(math.degrees(self.drive_choice.phi), 2),
                 "entry_ref": self._to_ref(self.geometry.entry).tolist(),
                 "exit_ref": self._to_ref(self.geometry.exit).tolist()}
