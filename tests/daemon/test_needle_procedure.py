@@ -74,8 +74,32 @@ def test_a_suture_no_arm_reaches_refuses_before_moving():
     before = _snapshot(cell)
     res = proc.run("NG")
     assert res.refused and res.cause == "refused_out_of_reach"
-    assert "no arm can drive this suture" in res.detail and "reachable" in res.detail
+    assert "no arm can drive this suture either way" in res.detail
+    assert "(as given)" in res.detail and "(reversed)" in res.detail
+    assert "reachable" in res.detail
     assert _unmoved(cell, before)
+
+
+def test_a_suture_no_arm_drives_one_way_is_driven_the_other():
+    """Trial 27: neither wrist can follow the drive across the incision the way it runs
+    (each would bend past 75 deg); the plan drives the same suture the other way, entry
+    and exit swapped about the same point, rather than refusing."""
+    _, proc = _procedure(27)
+    plan = proc._plan()
+    assert plan["drive_direction"] == "reversed"
+    inc = proc.incision
+    z_S = proc.G_CS[:3, 2]
+    assert float(z_S @ (inc[0] - inc[1])) > 0.0          # the incision's ends swapped
+    mid = 0.5 * (np.array(plan["entry_ref"]) + np.array(plan["exit_ref"]))
+    assert np.linalg.norm(mid - inc.mean(axis=0)) < 0.003  # the same suture point
+    # the same as the plan for the incision given the other way round
+    cell, info = trial_cell(27)
+    other = NeedleProcedure(cell, info.incision[::-1], info.surface_normal, FAST,
+                            surface_outline=info.surface_outline)
+    same = other._plan()
+    assert same["drive_direction"] == "as given" and same["driver"] == plan["driver"]
+    np.testing.assert_allclose(same["entry_ref"], plan["entry_ref"], atol=1e-9)
+    np.testing.assert_allclose(same["exit_ref"], plan["exit_ref"], atol=1e-9)
 
 
 def test_a_tracker_that_has_not_converged_refuses_before_moving():
