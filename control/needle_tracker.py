@@ -603,6 +603,10 @@ class NeedleTracker:
         # the motion since (``_prior``), and whether its base and tip were decided
         self._prior: np.ndarray | None = None
         self._sided = False
+        # the strongest thread evidence (DN) the carried decision has had: a rigid needle
+        # cannot turn end for end, so only as strong a sight of the thread at the other
+        # end overturns it
+        self._side_evidence = 0.0
         # what is known of the pose with its covariance (local parameters): the last
         # refined pose, moved and widened by each known motion since; it outlives an
         # update that fitted nothing (the jaws and the tissue hid too much), which
@@ -725,8 +729,13 @@ class NeedleTracker:
             # a twin whose slide the views leave free (its tip hidden) can slide until
             # its base lies on the wire itself, which then reads as the thread: its
             # evidence overturns nothing carried
-            if twin_swage > swage and (not carried or (twin_swage >= s.swage_min
-                                                       and self._determined(twin_ref))):
+            # a carried decision yields to decisive evidence for the other twin, at least
+            # as strong as any it was carried on: with the thread hidden behind the new
+            # jaws at a hand-off (seed 21), the wrong twin read +15 DN where the track
+            # had read +25 on its own side before
+            if twin_swage > swage and (not carried or (
+                    twin_swage >= max(s.swage_min, self._side_evidence)
+                    and self._determined(twin_ref))):
                 ref, pose, swage = twin_ref, twin, twin_swage
                 carried = False
         if ref.ok:
@@ -748,6 +757,7 @@ class NeedleTracker:
                       f"{s.swage_min:.1f} needed)")
         track = NeedleTrack(pose, est, ref, swage, not reason, reason)
         if not reason:
+            self._side_evidence = max(self._side_evidence, swage) if carried else swage
             self._sided = True
         elif s.require_swage and carried and swage < -s.swage_min:
             self._sided = False       # decide afresh on the next update's evidence

@@ -339,3 +339,17 @@ def test_the_hand_off_check_moves_square_to_the_line_of_sight():
     ray = T_N[:3, 3] - proc.cams[0].T_ref_cam[:3, 3]
     assert abs(step @ ray) / (np.linalg.norm(step) * np.linalg.norm(ray)) < 1e-6
     assert step @ proc.normal >= -1e-9         # never toward the tissue
+
+
+def test_a_hand_off_keeps_the_needles_ends_the_thread_decided():
+    """Issue 7, tracking through the hand-off: on trial 21 the thread, seen at +25 DN
+    while the first arm held the needle, hides behind the second arm's jaws once they
+    close, and the wrong twin then reads +15 DN. The track stays on the ends it decided
+    (it turned end for end here, and ND then saw the driving grasp at 154 deg of arc
+    instead of 26)."""
+    cell, proc = _procedure(21, settings=ProcedureSettings())
+    assert proc.run("NG").ok
+    proc.run("NH")
+    T = cell.truth().T_ref_needle
+    T_track = proc.tracker.last.pose
+    assert rotation_angle(T_track[:3, :3].T @ T[:3, :3]) < math.radians(10.0)
