@@ -51,7 +51,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import platform
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -72,6 +71,8 @@ from oralnav.sim.needle_cell import ArmReach, CellError, NeedleCell
 from oralnav.sim.needle_trials import TrialInfo, trial_scene
 from oralnav.sim.render import SceneRenderer
 from oralnav.sim.scene import Scene
+
+from .machine import describe
 
 PARTICLES = (100, 300, 1000, 3000, 10000)
 #: A converged update this far off is counted as converged yet wrong (mm, deg).
@@ -856,17 +857,8 @@ def _blas_threads() -> list[str]:
 def _machine() -> dict[str, Any]:
     import numba
 
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpus": os.cpu_count(), "cpu": cpu, "python": platform.python_version(),
-            "numpy": np.__version__, "opencv": cv2.__version__, "numba": numba.__version__,
-            "numba_threads": numba.get_num_threads()}
+    return describe(numpy=np.__version__, opencv=cv2.__version__, numba=numba.__version__,
+                    numba_threads=numba.get_num_threads())
 
 
 def _plain(x: Any) -> Any:

@@ -86,6 +86,8 @@ from oralnav.control.placement import (
 )
 from oralnav.control.rod_check import RodCheck
 
+from .machine import describe
+
 #: The paper's Table 1: N -> (coverage %, seconds per slice); MATLAB R2017b, i5-10200H,
 #: lambda_p = 20000, alpha = 1.0, one boundary (its Fig. 7a).
 PAPER_TABLE1 = {3: (59.24, 0.171), 4: (71.09, 0.262), 5: (60.14, 0.215), 6: (82.31, 0.303),
@@ -136,18 +138,9 @@ def _machine() -> dict[str, Any]:
     import scipy
     import trimesh
 
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpus": os.cpu_count(), "cpu": cpu, "python": platform.python_version(),
-            "platform": platform.platform(), "numpy": np.__version__,
-            "scipy": scipy.__version__, "trimesh": trimesh.__version__,
-            "python_fcl": getattr(fcl, "__version__", "?")}
+    return describe(platform=platform.platform(), numpy=np.__version__,
+                    scipy=scipy.__version__, trimesh=trimesh.__version__,
+                    python_fcl=getattr(fcl, "__version__", "?"))
 
 
 def _stats(x: Any) -> dict[str, float] | None:

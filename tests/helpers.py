@@ -133,3 +133,14 @@ def render_tags(camera: CameraModel, body: RigidBody, T_cam_body: np.ndarray, *,
 #: the product's 10 ms limit rightly turns into a stop. The deadline watchdog itself is
 #: tested on a virtual clock (tests/daemon/test_control_loop.py, tests/safety).
 LOADED_MACHINE = {"max_period_lateness": 0.5, "deadline_misses": 1000}
+
+
+def draw_visible_runs(img: np.ndarray, uv: np.ndarray, keep: np.ndarray, value: int,
+                      thickness: int) -> None:
+    """Draw the polyline ``uv`` (N, 2 px) on ``img`` in place, anti-aliased at 1/16 px,
+    only along its runs of consecutive points where ``keep`` (N,) is True: a needle cut
+    by the tissue plane shows as separate pieces."""
+    for run in np.split(np.arange(len(uv)), np.nonzero(np.diff(keep))[0] + 1):
+        if keep[run[0]] and run.size > 1:
+            cv2.polylines(img, [np.round(uv[run] * 16).astype(np.int32)], False, value,
+                          thickness, cv2.LINE_AA, 4)

@@ -25,6 +25,8 @@ from oralnav.control.needle_refine import (
 )
 from oralnav.control.needle_tracker import FilterSettings, NeedleTracker, TrackSettings, mirror_tilt
 
+from ..helpers import draw_visible_runs
+
 K = np.array([[600.0, 0, 240], [0, 600.0, 180], [0, 0, 1]])   # the stereo endoscope's f
 LEFT = CameraModel("left", (480, 360), K)
 RIGHT_T = np.eye(4)
@@ -49,10 +51,7 @@ def _draw(cam, T=T_TRUE, thread=False, noise=2.0, seed=0, plane=None):
     uv = cam.project_from(Tc, axis)
     keep = np.ones(len(axis), bool) if plane is None else \
         plane.height(axis @ T[:3, :3].T + T[:3, 3]) >= 0
-    for run in np.split(np.arange(len(axis)), np.nonzero(np.diff(keep))[0] + 1):
-        if keep[run[0]] and run.size > 1:
-            cv2.polylines(img, [np.round(uv[run] * 16).astype(np.int32)], False, 70, 6,
-                          cv2.LINE_AA, 4)
+    draw_visible_runs(img, uv, keep, 70, 6)
     if thread:
         d = np.linspace(0.0, 0.008, 40)[:, None]
         pts = NEEDLE.base - d * NEEDLE.tangent(0.0)

@@ -26,6 +26,8 @@ from oralnav.control.needle_tracker import (
 from oralnav.sim.needle_cell import NeedleCell
 from oralnav.sim.needle_trials import trial_scene
 
+from ..helpers import draw_visible_runs
+
 CAM = CameraModel("endoscope", (320, 240), np.array([[300.0, 0, 160], [0, 300.0, 120],
                                                      [0, 0, 1]]))
 NEEDLE = Needle()
@@ -42,10 +44,7 @@ def _image(T=T_TRUE, noise=0.0, seed=0, plane=None):
     uv = CAM.project_from(T, pts)
     keep = np.ones(len(pts), bool) if plane is None else \
         plane.height(pts @ T[:3, :3].T + T[:3, 3]) >= 0
-    for run in np.split(np.arange(len(pts)), np.nonzero(np.diff(keep))[0] + 1):
-        if keep[run[0]] and run.size > 1:
-            cv2.polylines(img, [np.round(uv[run] * 16).astype(np.int32)], False, 60, 2,
-                          cv2.LINE_AA, 4)
+    draw_visible_runs(img, uv, keep, 60, 2)
     return img
 
 
