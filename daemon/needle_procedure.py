@@ -778,6 +778,7 @@ class NeedleProcedure:
         except NeedleError as exc:
             raise _refuse("bad_suture", str(exc)) from None
         why: dict[str, str] = {}
+        pick = replace(s.drive_grasp, swage_margin=s.drive_grasp.swage_margin + s.grasp_margin)
         for ends, way in ((inc, "as given"), (inc[::-1], "reversed")):
             try:
                 G_CS = tissue_frame(ends[0], ends[1], self.normal, suture_point=point)
@@ -786,8 +787,6 @@ class NeedleProcedure:
             except NeedleError as exc:
                 raise _refuse("bad_suture", str(exc)) from None
             options = []
-            pick = replace(s.drive_grasp,
-                           swage_margin=s.drive_grasp.swage_margin + s.grasp_margin)
             for arm in self.arms:
                 try:
                     choice = select_grasp(

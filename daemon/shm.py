@@ -69,11 +69,12 @@ class SharedRecord:
         """Set the named fields (the others keep their values) as one update. Never waits
         on a reader."""
         with self._lock:
-            if self._mine is None:  # first write from this side: start from what is there
-                self._mine = self.read()
-            mine = self._mine
+            # first write from this side: start from what is there; a value that does not
+            # convert leaves both the shared record and this side's copy as they were
+            mine = (self.read() if self._mine is None else self._mine).copy()
             for key, value in values.items():
                 mine[key] = value
+            self._mine = mine
             done = int(self._seq[0]) // 2
             self._seq[0] = np.uint64(2 * done + 1)       # odd: filling the other copy
             self._rec[(done + 1) % 2] = mine

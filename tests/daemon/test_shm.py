@@ -105,3 +105,16 @@ def test_reasons_are_cut_at_a_character_boundary() -> None:
     """A reason longer than the field keeps whole UTF-8 characters only."""
     raw = encode_reason("é" * 200)
     assert len(raw) <= 240 and decode_reason(raw) == "é" * (len(raw) // 2)
+
+
+def test_a_write_that_does_not_convert_changes_nothing(rec: SharedRecord) -> None:
+    """Bad input loses nothing: a write whose value does not fit its field raises, and
+    neither the shared record nor the writer's next write carries its other fields."""
+    rec.write(a=1.0, n=1)
+    with pytest.raises(ValueError):
+        rec.write(a=5.0, big=np.zeros(3))          # 3 values for a 64-value field
+    got = rec.read()
+    assert (got["a"], got["n"]) == (1.0, 1) and rec.sequence == 2
+    rec.write(n=2)
+    got = rec.read()
+    assert (got["a"], got["n"]) == (1.0, 2)
