@@ -184,7 +184,9 @@ class RefineSettings:
     ``search_px``: the half-width of the normal search of each round (shrinking rounds
     first capture the wire, then lock onto it); ``iterations``: Gauss-Newton steps per
     round; ``points``: arc sample points; ``min_peak``: the ridge value (DN) a peak must
-    reach to count; ``tukey_px``: Tukey's constant, residuals beyond it get no weight.
+    reach to count; ``tukey_px``: Tukey's constant, residuals beyond it get no weight;
+    ``polish_tukey_px``: the least constant of the last round, which otherwise takes it
+    from the crest residuals' spread (4.685 times their MAD scale).
     """
 
     points: int = 72
@@ -193,6 +195,7 @@ class RefineSettings:
     iterations: int = 2
     min_peak: float = 6.0
     tukey_px: float = 2.5
+    polish_tukey_px: float = 1.0  # the last round's Tukey constant is never below this
     max_rms_px: float = 0.8      # above this the refined pose is not trusted
     min_support: float = 0.6     # share of (visible) sample points that must find the wire
     end_weight: float = 6.0      # an end measurement counts as this many crest points
@@ -208,8 +211,10 @@ class RefineSettings:
         if self.points < 8 or not self.search_px or min(self.search_px) <= self.step_px:
             raise NeedleError("refinement needs >= 8 points and search windows wider "
                               "than the step")
-        if not (self.step_px > 0 and self.iterations >= 1 and self.tukey_px > 0):
-            raise NeedleError("step_px > 0, iterations >= 1 and tukey_px > 0 are required")
+        if not (self.step_px > 0 and self.iterations >= 1 and self.tukey_px > 0
+                and self.polish_tukey_px > 0):
+            raise NeedleError("step_px > 0, iterations >= 1, tukey_px > 0 and "
+                              "polish_tukey_px > 0 are required")
 
 
 @dataclass(frozen=True)
@@ -531,7 +536,8 @@ class PoseRefiner:
     def refine(self, features: Sequence[NeedleFeatures], T: np.ndarray, *,
                occluder: TissuePlane | None = None, tip_only: bool = False,
                tools: Sequence[ToolCylinder] = (),
-               prior: PosePrior | None = None) -> Refined:
+               prior: PosePrior | None = None,
+               search_px: Sequence[float] | None = None) -> Refined:
         """Refine ``T`` (``T_ref_N``) on the cameras' features (:func:`.needle_features.
         feature_maps`, one per camera, same order): the crest on ``ridge``, the ends on
         ``ends``. ``occluder``: the tissue's surface when the needle may be in it (what
@@ -546,8 +552,13 @@ class PoseRefiner:
         images' measurements, it keeps determined what the jaws or the tissue hide (the
         slide while both ends are hidden, the depth a short baseline barely measures).
         Ignored when the prior's pose is the other twin (turned more than 90 deg from
-        ``T``)."""
+        ``T``). ``search_px``: the rounds' search windows in place of the settings' (a
+        start already on the wire needs no wide capture rounds)."""
         s = self.s
+        windows = tuple(s.search_px if search_px is None else search_px)
+        if not windows or min(windows) <= s.step_px:
+            raise NeedleError(f"search windows must be wider than the step "
+                              f"({s.step_px} px), got {windows!r}")
         tools = checked_tools(tools)
         if occluder is not None:
             if not isinstance(occluder, TissuePlane):
@@ -573,7 +584,8 @@ class PoseRefiner:
             if rotation_angle(prior.pose[:3, :3], T[:3, :3]) >= 0.5 * math.pi:
                 prior = None
         rms, support, H = math.inf, 0.0, None
-        for half in (*s.search_px, s.search_px[-1]):
+        rounds = (*windows, windows[-1])
+        for n_round, half in enumerate(rounds):
             meas, found_n, inside = self._measure(ridges, ends, T, half, occluder, tip_only,
                                                   tools)
             support = found_n / max(inside, 1)
@@ -586,6 +598,17 @@ class PoseRefiner:
                 # 10 px search is the wire seen from a pose still 8 px off, not an outlier
                 c = np.where(w0 > 1.0, max(s.tukey_px, 2.0 * max(half, 6.0)),
                              max(s.tukey_px, half))
+                if n_round == len(rounds) - 1:
+                    # the last round, on the wire: the crest points' own spread sets the
+                    # constant (Tukey's 4.685 times their MAD scale). Where a shaft, the
+                    # incision or the pad's edge crosses the wire, its crest bends 1-4 px
+                    # toward them over a few points, and weighted at the window's
+                    # constant those runs pulled a held needle 13 deg off in tilt
+                    # (trial 69's hand-off), at 0.1 px elsewhere
+                    crest = w0 <= 1.0
+                    if np.count_nonzero(crest) >= 8:
+                        mad = float(np.median(np.abs(r[crest] - np.median(r[crest]))))
+                        c = np.where(crest, max(s.polish_tukey_px, 6.946 * mad), c)
                 w = w0 * (1.0 - np.minimum((r / c) ** 2, 1.0)) ** 2
                 if np.count_nonzero(w) < 8:
                     H = None

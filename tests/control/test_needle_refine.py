@@ -218,7 +218,7 @@ def test_tracker_refuses_without_the_needle():
 
 def test_bad_input_is_refused():
     """Bad input: the wrong number of ridge images, a wrong size, a mask of the wrong
-    shape, settings that make no sense."""
+    shape, settings and search windows that make no sense."""
     ref = PoseRefiner(NEEDLE, [LEFT, RIGHT])
     f = _feats([LEFT])[0]
     with pytest.raises(NeedleError, match="feature sets"):
@@ -230,6 +230,12 @@ def test_bad_input_is_refused():
         feature_maps(_draw(LEFT), WIRE_PX, ignore=np.zeros((10, 10), bool))
     with pytest.raises(NeedleError):
         RefineSettings(search_px=(0.2,))
+    with pytest.raises(NeedleError):
+        RefineSettings(polish_tukey_px=0.0)
+    with pytest.raises(NeedleError, match="search windows"):
+        ref.refine(_feats([LEFT, RIGHT]), T_TRUE, search_px=(0.2,))
+    with pytest.raises(NeedleError, match="search windows"):
+        ref.refine(_feats([LEFT, RIGHT]), T_TRUE, search_px=())
     with pytest.raises(NeedleError):
         PoseRefiner(NEEDLE, [])
 
