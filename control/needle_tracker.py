@@ -688,17 +688,16 @@ class NeedleTracker:
         # pose when it was a refined one
         moved = (self._prior is not None and last is not None and last.refined is not None
                  and last.refined.ok)
-        starts = ([self._belief[0]] if self._belief is not None
-                  else [self._prior] if moved else []) + [est.pose]
-        return self._finish(features, est, starts)
+        carried = ([self._belief[0]] if self._belief is not None
+                   else [self._prior] if moved else [])
+        return self._finish(features, est, carried + [est.pose], narrow_first=bool(carried))
 
     def _finish(self, features: Sequence[NeedleFeatures], est: NeedleEstimate,
-                starts: list[np.ndarray]) -> NeedleTrack:
+                starts: list[np.ndarray], narrow_first: bool = False) -> NeedleTrack:
         s = self.s
         ridges = [f.ridge for f in features]
-        # a tracking update's first start is the pose carried from the last (moved)
         ref = self._best_fit(features, starts, first_good=len(starts) <= 2,
-                             carried=len(starts) == 2)
+                             narrow_first=narrow_first)
         pose = ref.pose if ref.ok else est.pose
         swage = swage_evidence(self.needle, self.cameras, ridges, pose,
                                tools=self.tools)
@@ -787,12 +786,12 @@ class NeedleTracker:
                 and r.sigma_angle <= s.max_sigma_angle)
 
     def _best_fit(self, features: Sequence[NeedleFeatures], starts: Sequence[np.ndarray],
-                  first_good: bool = False, carried: bool = False) -> Refined:
+                  first_good: bool = False, narrow_first: bool = False) -> Refined:
         """The refinement from each start; the best: one that passes beats one that does
         not, a determined one (no end seen: the slide is free) one that is not, then the
         closer fit. ``first_good``: stop at the first start that fits well (tracking).
-        ``carried``: the first start is the last pose moved with the jaws, a few pixels
-        off at most: it is refined first in the narrow window alone. The wide capture
+        ``narrow_first``: the first start is the last pose moved with the jaws, a few
+        pixels off at most: it is refined first in the narrow window alone. The wide capture
         rounds reach whatever crosses the wire (a shaft, the incision, the pad's edge);
         from the true pose of trial 69's held needle they pulled the fit 13 deg off in
         tilt, at 0.21 px RMS, where the narrow window kept it within 1.4 deg at 0.12 px.
@@ -814,7 +813,7 @@ class NeedleTracker:
                                        else None)
 
         tries = [(T0, False) for T0 in starts]
-        if carried and starts:
+        if narrow_first and starts:
             tries.insert(0, (starts[0], True))
         for T0, narrow in tries:
             r = fit(T0, prior, narrow)

@@ -610,8 +610,7 @@ class NeedleProcedure:
         along it, and last along the normal; the first whose goal the arm reaches and
         from where the cameras see the needle."""
         T = self.cell.gripper_pose(arm)
-        v = T_N[:3, 3] - self.cams[0].T_ref_cam[:3, 3]
-        v /= np.linalg.norm(v)
+        v = self._sight(T_N)
         up = self.normal - float(self.normal @ v) * v
         side = np.cross(v, self.normal)
         ways = [w / np.linalg.norm(w) for w in (up, side, -side)
@@ -701,12 +700,18 @@ class NeedleProcedure:
         return math.hypot(float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3])),
                           self.needle.radius * tilt)
 
+    def _sight(self, T_ref_N: np.ndarray) -> np.ndarray:
+        """The reference camera's line of sight to the needle's centre at ``T_ref_N``
+        (unit, reference frame): the views measure depth along it to about a
+        millimetre, across it to a tenth."""
+        v = T_ref_N[:3, 3] - self.cams[0].T_ref_cam[:3, 3]
+        return v / np.linalg.norm(v)
+
     def _across_sight(self, T_ref_N: np.ndarray) -> Callable[[np.ndarray, np.ndarray], float]:
         """A distance (m) between two needle poses: their centres' distance square to
         the reference camera's line of sight to the needle at ``T_ref_N`` (what the views
         measure best; slide and tilt do not enter)."""
-        v = T_ref_N[:3, 3] - self.cams[0].T_ref_cam[:3, 3]
-        v = v / np.linalg.norm(v)
+        v = self._sight(T_ref_N)
 
         def distance(T_a: np.ndarray, T_b: np.ndarray) -> float:
             d = T_a[:3, 3] - T_b[:3, 3]
@@ -721,8 +726,7 @@ class NeedleProcedure:
         reference view at most ``max_view_angle`` from face-on."""
         s = self.s
         pts = self.needle.points(48) @ T_ref_N[:3, :3].T + T_ref_N[:3, 3]
-        centre = T_ref_N[:3, 3] - self.cams[0].T_ref_cam[:3, 3]
-        facing = abs(float(T_ref_N[:3, 2] @ centre)) / float(np.linalg.norm(centre))
+        facing = abs(float(T_ref_N[:3, 2] @ self._sight(T_ref_N)))
         if facing < math.cos(s.max_view_angle):
             return "edge-on to the camera"
         m = s.view_margin_px
