@@ -81,7 +81,10 @@ def build_control(cfg: DaemonConfig, home: np.ndarray | None = None) -> ControlP
     if s.cell.backend != "sim":
         raise NotImplementedError("hardware drivers come with the hardware issue; "
                                   "use [cell] backend = \"sim\"")
-    arm_opts: dict[str, Any] = {"max_speed": s.safety.max_speed}
+    # the simulated arm's watchdog outwaits the loop's own deadline watchdog, so a stalled
+    # loop is stopped by the loop, with its reason, and the arm's watchdog stays the backstop
+    arm_opts: dict[str, Any] = {"max_speed": s.safety.max_speed,
+                                "watchdog_timeout": max(0.05, 2.0 * s.safety.max_period_lateness)}
     if home is not None:
         arm_opts["home"] = home
     return ControlProcess(ProcessSpec(
