@@ -185,7 +185,11 @@ class ArmEntry(Strict):
     rcm: Vec3
     min_insertion: Annotated[Float, Field(ge=0, le=2)] = 0.03
     max_insertion: Annotated[Float, Field(gt=0, le=2)] = 0.20
-    max_wrist_angle_deg: Annotated[Float, Field(gt=0, le=180)] = 75.0
+    # the wrist of the da Vinci Large Needle Driver by default (oralnav.sim.needle_cell)
+    max_wrist_pitch_deg: Annotated[Float, Field(gt=0, le=180)] = 80.0
+    max_wrist_yaw_deg: Annotated[Float, Field(gt=0, le=180)] = 80.0
+    pitch_to_yaw: Annotated[Float, Field(ge=0, le=0.1)] = 0.0091
+    yaw_to_tip: Annotated[Float, Field(ge=0, le=0.1)] = 0.0095
 
     @model_validator(mode="after")
     def _range(self) -> ArmEntry:
@@ -197,7 +201,9 @@ class ArmEntry(Strict):
     def reach(self) -> ArmReach:
         return ArmReach(rcm=np.array(self.rcm, dtype=float), min_insertion=self.min_insertion,
                         max_insertion=self.max_insertion,
-                        max_wrist_angle=math.radians(self.max_wrist_angle_deg))
+                        max_wrist_pitch=math.radians(self.max_wrist_pitch_deg),
+                        max_wrist_yaw=math.radians(self.max_wrist_yaw_deg),
+                        pitch_to_yaw=self.pitch_to_yaw, yaw_to_tip=self.yaw_to_tip)
 
 
 class SceneFile(Strict):
@@ -245,8 +251,8 @@ def load_needle_cell(path: str | Path, *, reach: Mapping[str, ArmReach] | None =
     if missing:
         raise ConfigError(path, f"arms.{missing[0]}",
                           f"no [arms.<name>] section for gripper(s) {missing}: the cell needs "
-                          "each arm's reach (rcm, min_insertion, max_insertion, "
-                          "max_wrist_angle_deg)")
+                          "each arm's reach (rcm, min_insertion, max_insertion, and "
+                          "optionally its wrist)")
     try:
         return NeedleCell(scene, reach, **options)
     except CellError as exc:

@@ -336,6 +336,63 @@ def _pose_error(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
             math.degrees(rotation_angle(T[:3, :3], T_true[:3, :3])))
 
 
+def _drive_pick(s: ProcedureSettings) -> GraspSettings:
+    """The drive grasp rule as the plan applies it (``grasp_margin`` more from the swage)."""
+    return replace(s.drive_grasp, swage_margin=s.drive_grasp.swage_margin + s.grasp_margin)
+
+
+def drive_ways(incision: np.ndarray, normal: np.ndarray, geometry: SutureGeometry,
+               s: ProcedureSettings) -> list[tuple[str, np.ndarray, Drive]]:
+    """The two drives of the suture at ``s.suture_at`` along ``incision`` (2, 3; reference
+    frame, m) on the surface of unit ``normal``: ``("as given", G_CS, drive)`` with the
+    entry on the side the incision's direction sets, then ``("reversed", ...)``, the same
+    point crossed the other way (a backhand stitch for a forehand one). Raises
+    :class:`NeedleError` for a degenerate incision or suture."""
+    point = incision[0] + s.suture_at * (incision[1] - incision[0])
+    out = []
+    for ends, way in ((incision, "as given"), (incision[::-1], "reversed")):
+        G_CS = tissue_frame(ends[0], ends[1], normal, suture_point=point)
+        out.append((way, G_CS, plan_drive(np.eye(4), G_CS, geometry, s.drive_poses,
+                                          overshoot=s.overshoot)))
+    return out
+
+
+def port_drives(needle: Needle, settings: ProcedureSettings | None = None
+                ) -> Callable[[Callable[[np.ndarray], bool], np.ndarray, np.ndarray], bool]:
+    """Entry port selection (seed 002's grasp rule comes from its ref. [8], Liu and
+    Cavusoglu, "Needle grasp and entry port selection ..."): a check
+    ``drives(reachable, incision, normal) -> bool`` of whether an arm whose reach is
+    ``reachable(T_ref_tool) -> bool`` can drive the planned suture either way with a
+    grasp the plan would choose, for a cell set up before the procedure (the planner's
+    own rule, :meth:`NeedleProcedure._plan`). A suture the settings refuse drives from
+    no port."""
+    s = settings or ProcedureSettings()
+    pick = _drive_pick(s)
+    try:
+        geometry = SutureGeometry.for_needle(needle, s.depth)
+    except NeedleError:
+        geometry = None
+
+    def drives(reachable: Callable[[np.ndarray], bool], incision: np.ndarray,
+               normal: np.ndarray) -> bool:
+        if geometry is None:
+            return False
+        try:
+            ways = drive_ways(np.asarray(incision, float), np.asarray(normal, float),
+                              geometry, s)
+        except NeedleError:
+            return False
+        for _, _, drive in ways:
+            try:
+                select_grasp(needle, drive, pick, reachable=reachable)
+                return True
+            except NeedleError:
+                continue
+        return False
+
+    return drives
+
+
 class NeedleProcedure:
     """The five steps on one cell (see the module docstring).
 
@@ -795,20 +852,18 @@ class NeedleProcedure:
         point (the incision's ends swapped): a backhand stitch for a forehand one, the
         same suture, with the wrist turning the other way about the incision."""
         s, inc = self.s, self.incision
-        point = inc[0] + s.suture_at * (inc[1] - inc[0])
         try:
             self.geometry = SutureGeometry.for_needle(self.needle, s.depth)
         except NeedleError as exc:
             raise _refuse("bad_suture", str(exc)) from None
         why: dict[str, str] = {}
-        pick = replace(s.drive_grasp, swage_margin=s.drive_grasp.swage_margin + s.grasp_margin)
-        for ends, way in ((inc, "as given"), (inc[::-1], "reversed")):
-            try:
-                G_CS = tissue_frame(ends[0], ends[1], self.normal, suture_point=point)
-                drive = plan_drive(np.eye(4), G_CS, self.geometry, s.drive_poses,
-                                   overshoot=s.overshoot)
-            except NeedleError as exc:
-                raise _refuse("bad_suture", str(exc)) from None
+        pick = _drive_pick(s)
+        try:
+            ways = drive_ways(inc, self.normal, self.geometry, s)
+        except NeedleError as exc:
+            raise _refuse("bad_suture", str(exc)) from None
+        for chosen in ways:
+            way, _, drive = chosen
             options = []
             for arm in self.arms:
                 try:
@@ -826,7 +881,7 @@ class NeedleProcedure:
                           + "; ".join(f"{a}: {w}" for a, w in why.items()))
         _, self.driver, self.drive_choice = max(options, key=lambda o: o[0])
         self.picker = next(a for a in self.arms if a != self.driver)
-        self.G_CS, self.drive = G_CS, drive
+        way, self.G_CS, self.drive = chosen
         return {"driver": self.driver, "picker": self.picker, "drive_direction": way,
                 "drive_grasp_phi_deg": round(math.degrees(self.drive_choice.phi), 2),
                 "entry_ref": self._to_ref(self.geometry.entry).tolist(),

@@ -20,7 +20,7 @@ from typing import Any
 
 from oralnav.safety.errors import StateError
 
-from .needle_procedure import NeedleProcedure, ProcedureSettings
+from .needle_procedure import NeedleProcedure, ProcedureSettings, port_drives
 
 log = logging.getLogger(__name__)
 
@@ -41,12 +41,14 @@ class NeedleSession:
     def load_trial(self, trial: int, difficulty: float, who: str) -> dict[str, Any]:
         """Replace the cell by simulated trial ``trial`` (a fresh procedure at NG). A bad
         seed or difficulty is the trial's ``CellError`` (a ValueError: 422)."""
-        from oralnav.sim.needle_trials import trial_cell
+        from oralnav.sim.needle_trials import CT1, trial_cell
 
         if not self._lock.acquire(blocking=False):
             raise StateError(f"cannot load a cell while needle step {self._busy} runs")
         try:
-            cell, info = trial_cell(int(trial), difficulty=float(difficulty))
+            # the cell set up for the suture: ports chosen with this procedure's rule
+            cell, info = trial_cell(int(trial), difficulty=float(difficulty),
+                                    drivable=port_drives(CT1, self._settings))
             proc = NeedleProcedure(cell, info.incision, info.surface_normal, self._settings,
                                    surface_outline=info.surface_outline)
             self._proc = proc

@@ -50,7 +50,7 @@ from .cell import CellError
 from .render import Frame, SceneRenderer
 from .scene import Gripper, NeedleObject, Scene, TissuePad
 
-__all__ = ["ArmReach", "CellError", "CellTruth", "NeedleCell"]
+__all__ = ["ArmReach", "CellError", "CellTruth", "NeedleCell", "WristPose"]
 
 #: Arc points tested for a grasp (about 0.1 mm apart on a CT-1 needle).
 GRASP_SAMPLES = 400
@@ -58,20 +58,64 @@ GRASP_SAMPLES = 400
 TISSUE_SAMPLES = 400
 
 
+#: The wrist of the da Vinci Large Needle Driver (EndoWrist 400006), from the dVRK's tool
+#: definition (sawIntuitiveResearchKit, share/tool/LARGE_NEEDLE_DRIVER_400006.json): roll
+#: +-260 deg, wrist pitch and yaw +-80 deg each, the yaw (jaw hinge) axis 9.1 mm from the
+#: pitch axis; the jaw tip 9.5 mm from the hinge (the dVRK kinematics in Berkeley's
+#: FLSpegtransferHO, motion/dvrkVariables.py).
+LND_WRIST_LIMIT = math.radians(80.0)
+LND_PITCH_TO_YAW = 0.0091
+LND_YAW_TO_TIP = 0.0095
+
+
+@dataclass(frozen=True, eq=False)
+class WristPose:
+    """The joints an RCM arm with a pitch-yaw wrist needs for one tool pose (rad, m).
+
+    ``roll`` about the shaft, then ``pitch`` about the wrist's first axis (square to the
+    shaft), then ``yaw`` about the jaw hinge (the tool's ``x``: the jaws close along its
+    ``y``); ``bend`` the angle between the tool's ``z`` and the shaft; ``shaft`` (3,) the
+    shaft's unit direction, RCM to wrist; ``insertion`` the tip's distance from the RCM."""
+
+    roll: float
+    pitch: float
+    yaw: float
+    bend: float
+    shaft: np.ndarray
+    insertion: float
+
+
+def _shaft_frame(s: np.ndarray) -> np.ndarray:
+    """A rotation whose ``z`` is the unit vector ``s`` (its roll about ``s`` arbitrary:
+    the roll joint takes it up)."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(s[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(a, s)
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(s, x), s])
+
+
 @dataclass(frozen=True, eq=False)
 class ArmReach:
-    """The workspace of one RCM-type surgical arm (a simple model).
+    """The workspace of one RCM-type surgical arm with a two-joint wrist.
 
     ``rcm`` (3,): the remote centre of motion in the reference frame (m); the shaft always
-    passes through it. ``min_insertion``, ``max_insertion``: the tool tip's distance from
-    the RCM (m). ``max_wrist_angle`` (rad): the largest angle between the tool's ``z``
-    axis and the shaft (the direction RCM -> tip), which the wrist can bend.
+    passes through it and through the wrist's pitch axis. ``min_insertion``,
+    ``max_insertion``: the tool tip's distance from the RCM (m). The wrist: a roll about
+    the shaft (taken as unlimited: the needle driver's +-260 deg cover any one turn of the
+    procedure), a pitch within ``max_wrist_pitch`` and a yaw of the jaws about their hinge
+    within ``max_wrist_yaw`` (rad); ``pitch_to_yaw`` from the pitch axis to the hinge and
+    ``yaw_to_tip`` from the hinge to the tip (m). The defaults are the da Vinci Large
+    Needle Driver's: the jaws bend up to 80 deg from the shaft in any direction with any
+    twist, and up to 88 deg with some twists.
     """
 
     rcm: np.ndarray
     min_insertion: float = 0.03
     max_insertion: float = 0.20
-    max_wrist_angle: float = math.radians(75.0)
+    max_wrist_pitch: float = LND_WRIST_LIMIT
+    max_wrist_yaw: float = LND_WRIST_LIMIT
+    pitch_to_yaw: float = LND_PITCH_TO_YAW
+    yaw_to_tip: float = LND_YAW_TO_TIP
 
     def __post_init__(self) -> None:
         rcm = np.array(self.rcm, dtype=float)
@@ -83,28 +127,60 @@ class ArmReach:
         if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo < hi):
             raise CellError(f"arm reach: need 0 <= min_insertion < max_insertion (m), got "
                             f"{lo}, {hi}")
-        if not (math.isfinite(self.max_wrist_angle) and 0 < self.max_wrist_angle <= math.pi):
-            raise CellError(f"arm reach: max_wrist_angle must be in (0, pi] rad, got "
-                            f"{self.max_wrist_angle}")
+        for name in ("max_wrist_pitch", "max_wrist_yaw"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and 0 < v <= math.pi):
+                raise CellError(f"arm reach: {name} must be in (0, pi] rad, got {v}")
+        for name in ("pitch_to_yaw", "yaw_to_tip"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise CellError(f"arm reach: {name} must be >= 0 m, got {v}")
+        if self.pitch_to_yaw + self.yaw_to_tip >= hi:
+            raise CellError(f"arm reach: the wrist ({self.pitch_to_yaw + self.yaw_to_tip} m "
+                            f"from pitch axis to tip) must be shorter than max_insertion {hi} m")
 
     def insertion(self, T_ref_tool: np.ndarray) -> float:
         """The tip's distance from the RCM (m)."""
         return float(np.linalg.norm(np.asarray(T_ref_tool)[:3, 3] - self.rcm))
 
+    def wrist(self, T_ref_tool: np.ndarray) -> WristPose:
+        """The wrist joints that put the tool at ``T_ref_tool`` (4x4, m).
+
+        The shaft runs from the RCM to the pitch axis, which sits ``pitch_to_yaw`` behind
+        the jaw hinge along the link between them, whose direction depends on the yaw:
+        found by fixed-point rounds from the RCM-to-hinge direction (each round shrinks the
+        error by about ``pitch_to_yaw`` over the insertion, a few per cent here)."""
+        T = np.asarray(T_ref_tool, dtype=float)
+        R, tip = T[:3, :3], T[:3, 3]
+        hinge = tip - self.yaw_to_tip * R[:, 2]
+        s = hinge - self.rcm
+        for _ in range(8):
+            n = float(np.linalg.norm(s))
+            if n < 1e-9:
+                raise CellError("arm reach: the wrist would sit on the RCM")
+            s = s / n
+            M = _shaft_frame(s).T @ R          # the tool in the shaft's frame: Rz Ry Rx
+            pitch = math.asin(max(-1.0, min(1.0, -float(M[2, 0]))))
+            yaw = math.atan2(float(M[2, 1]), float(M[2, 2]))
+            roll = math.atan2(float(M[1, 0]), float(M[0, 0]))
+            link = R @ np.array([0.0, math.sin(yaw), math.cos(yaw)])  # pitch axis -> hinge
+            moved = hinge - self.pitch_to_yaw * link - self.rcm
+            step = float(np.linalg.norm(moved / max(float(np.linalg.norm(moved)), 1e-12) - s))
+            s = moved
+            if step < 1e-9:
+                break
+        s = s / np.linalg.norm(s)
+        bend = math.acos(max(-1.0, min(1.0, float(R[:, 2] @ s))))
+        return WristPose(roll, pitch, yaw, bend, s, self.insertion(T))
+
     def wrist_angle(self, T_ref_tool: np.ndarray) -> float:
-        """Angle (rad) between the tool's ``z`` axis and the shaft (RCM -> tip); 0 at the
-        RCM itself."""
-        T = np.asarray(T_ref_tool)
-        d = T[:3, 3] - self.rcm
-        n = float(np.linalg.norm(d))
-        if n < 1e-12:
-            return 0.0
-        return math.acos(max(-1.0, min(1.0, float(T[:3, 2] @ d) / n)))
+        """Angle (rad) between the tool's ``z`` axis and the shaft."""
+        return self.wrist(T_ref_tool).bend
 
     def reachable(self, T_ref_tool: np.ndarray) -> tuple[bool, str]:
         """``(ok, reason)``: whether the arm can put its tool at ``T_ref_tool`` (4x4, m);
         the reason names the limit that refuses it (``min_insertion``, ``max_insertion``,
-        ``max_wrist_angle``), empty when reachable."""
+        ``max_wrist_pitch``, ``max_wrist_yaw``), empty when reachable."""
         L = self.insertion(T_ref_tool)
         if L < self.min_insertion:
             return False, (f"min_insertion: the tip would be {L * 1e3:.1f} mm from the RCM, "
@@ -112,11 +188,13 @@ class ArmReach:
         if L > self.max_insertion:
             return False, (f"max_insertion: the tip would be {L * 1e3:.1f} mm from the RCM, "
                            f"beyond {self.max_insertion * 1e3:.1f} mm")
-        a = self.wrist_angle(T_ref_tool)
-        if a > self.max_wrist_angle:
-            return False, (f"max_wrist_angle: the wrist would bend {math.degrees(a):.1f} deg "
-                           f"from the shaft, beyond {math.degrees(self.max_wrist_angle):.1f} "
-                           "deg")
+        w = self.wrist(T_ref_tool)
+        for name, joint, v, lim in (("max_wrist_pitch", "pitch", w.pitch, self.max_wrist_pitch),
+                                    ("max_wrist_yaw", "yaw", w.yaw, self.max_wrist_yaw)):
+            if abs(v) > lim:
+                return False, (f"{name}: the wrist would {joint} {math.degrees(v):.1f} deg, "
+                               f"beyond +-{math.degrees(lim):.1f} deg (the jaws "
+                               f"{math.degrees(w.bend):.1f} deg from the shaft)")
         return True, ""
 
 

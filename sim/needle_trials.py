@@ -22,10 +22,15 @@ The layout, in the stereo endoscope's reference frame (the left channel; metres)
   clear of the needle in both views;
 - each arm's RCM 40-60 mm to its side of the pad centre, +-15 mm vertically, about
   120-150 mm from the pad centre and at least 2 mm behind the camera's plane (a port
-  beside the endoscope's); reach: insertion 30 mm to 20-30 mm beyond the farthest point
-  of the needle, the incision and the park pose; wrist up to 75 deg. So the needle and the
-  incision are reachable by both arms, and the pad's far side, or the space around the
-  RCM, may not be.
+  beside the endoscope's). Entry port selection, as in seed 002's ref. [8] (Liu and
+  Cavusoglu, "Needle grasp and entry port selection ..."), when a ``drivable`` check is
+  given: each arm draws 12 port sites there and takes the first from which the planned
+  suture can be driven (the record's ``port``, and ``port_drives`` false when none
+  could: the arm takes its first site, and the trial may fail by reach); reach:
+  insertion 30 mm to 20-30 mm beyond the farthest point of the needle, the incision and
+  the park pose; the wrist of a da Vinci Large Needle Driver (pitch and yaw +-80 deg,
+  :class:`ArmReach`). So the needle and the incision are reachable by both arms, and the
+  pad's far side, or the space around the RCM, may not be.
 
 Imaging: background 20-50 DN, pad 150-200, needle 60-90 with a specular 120-200,
 illumination gradient each in [-0.35, 0.35], blur 0.8-1.5 px, read noise 1-3 DN, shot
@@ -40,6 +45,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -55,7 +61,7 @@ from oralnav.control.needle import Needle
 from .needle_cell import ArmReach, CellError, NeedleCell
 from .scene import Gripper, Imaging, NeedleObject, Scene, TissuePad
 
-__all__ = ["RIG_FILE", "TrialInfo", "trial_cell", "trial_scene"]
+__all__ = ["RIG_FILE", "PortCheck", "TrialInfo", "trial_cell", "trial_scene"]
 
 #: The stereo endoscope the trials are seen by.
 RIG_FILE = Path(__file__).resolve().parent.parent / "config" / "rigs" / "stereo_endoscope.toml"
@@ -72,6 +78,14 @@ EDGE_CLEARANCE = 0.004
 BORDER_PX = 20.0
 GRIPPER_CLEARANCE_PX = 10.0
 MAX_ATTEMPTS = 200
+#: Port sites drawn per arm when the ports are selected for the suture.
+PORT_CANDIDATES = 12
+
+#: ``drivable(reachable, incision, normal) -> bool``: whether an arm whose reach is
+#: ``reachable(T_ref_tool) -> bool`` can drive the planned suture across ``incision``
+#: (2, 3) on the surface of ``normal`` (3,), reference frame (m);
+#: ``oralnav.daemon.needle_procedure.port_drives`` makes the procedure's.
+PortCheck = Callable[[Callable[[np.ndarray], bool], np.ndarray, np.ndarray], bool]
 
 
 @dataclass(frozen=True)
@@ -154,10 +168,13 @@ def _gripper_clear(rig: Rig, T_ref_tool: np.ndarray, pts_ref: np.ndarray) -> boo
     return True
 
 
-def trial_scene(seed: int, *, difficulty: float = 1.0, rig_file: str | Path = RIG_FILE
+def trial_scene(seed: int, *, difficulty: float = 1.0, rig_file: str | Path = RIG_FILE,
+                drivable: PortCheck | None = None
                 ) -> tuple[Scene, dict[str, ArmReach], TrialInfo]:
     """The scene, the arms' reach and the record of trial ``seed`` (see the module
-    docstring); :func:`trial_cell` builds the cell from them."""
+    docstring); :func:`trial_cell` builds the cell from them. ``drivable(reachable,
+    incision, normal) -> bool``: entry port selection (the module docstring); without it
+    each arm takes the one port site it draws."""
     if not (isinstance(seed, int | np.integer) and 0 <= seed < 2**63):
         raise CellError(f"trial seed must be an integer in [0, 2^63), got {seed!r}")
     if not (math.isfinite(difficulty) and 0.0 <= difficulty <= 1.0):
@@ -172,7 +189,7 @@ def trial_scene(seed: int, *, difficulty: float = 1.0, rig_file: str | Path = RI
         attempts += 1
         if attempts > MAX_ATTEMPTS:  # the shipped rig needs 1-2 attempts
             raise CellError(f"trial {seed}: no valid layout in {MAX_ATTEMPTS} attempts")
-        out = _draw(rig, rng)
+        out = _draw(rig, rng, drivable)
     scene_parts, reach, values, incision, normal = out
     img = dict(background=u(20.0, 50.0), pad_level=u(150.0, 200.0),
                needle_level=u(60.0, 90.0), specular=u(120.0, 200.0),
@@ -201,15 +218,16 @@ def trial_scene(seed: int, *, difficulty: float = 1.0, rig_file: str | Path = RI
     return scene, reach, TrialInfo(int(seed), D, values, incision, normal, corners)
 
 
-def trial_cell(seed: int, *, difficulty: float = 1.0, **options
-               ) -> tuple[NeedleCell, TrialInfo]:
-    """A randomised two-arm needle cell for trial ``seed`` and what was drawn; ``options``
-    go to :class:`NeedleCell` (e.g. ``kinematic_error``)."""
-    scene, reach, info = trial_scene(seed, difficulty=difficulty)
+def trial_cell(seed: int, *, difficulty: float = 1.0, drivable: PortCheck | None = None,
+               **options) -> tuple[NeedleCell, TrialInfo]:
+    """A randomised two-arm needle cell for trial ``seed`` and what was drawn, its ports
+    chosen with ``drivable`` (:func:`trial_scene`); ``options`` go to :class:`NeedleCell`
+    (e.g. ``kinematic_error``)."""
+    scene, reach, info = trial_scene(seed, difficulty=difficulty, drivable=drivable)
     return NeedleCell(scene, reach, **options), info
 
 
-def _draw(rig: Rig, rng: np.random.Generator):
+def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None):
     """One attempt at the layout; ``None`` if a constraint fails (the caller draws
     again from the same stream)."""
     u = rng.uniform
@@ -264,12 +282,30 @@ def _draw(rig: Rig, rng: np.random.Generator):
     cam = rig[rig.reference]
     grippers, reach, arms = [], {}, {}
     for name, side in (("left", -1.0), ("right", 1.0)):
-        lateral = side * u(0.040, 0.060)
-        vertical = u(-0.015, 0.015)
-        dist = u(0.120, 0.150)
-        depth = math.sqrt(max(dist**2 - lateral**2 - vertical**2, 0.0))
-        rcm = centre + np.array([lateral, vertical, -depth])
-        rcm[2] = min(rcm[2], -0.002)                     # behind the camera's plane
+        # candidate port sites, all drawn (a fixed share of the stream); the first from
+        # which the planned suture drives is taken, else the first (the arm may still
+        # pick up and hand off; the other may drive)
+        sites = []
+        for _ in range(PORT_CANDIDATES if drivable is not None else 1):
+            lateral = side * u(0.040, 0.060)
+            vertical = u(-0.015, 0.015)
+            dist = u(0.120, 0.150)
+            depth = math.sqrt(max(dist**2 - lateral**2 - vertical**2, 0.0))
+            rcm = centre + np.array([lateral, vertical, -depth])
+            rcm[2] = min(rcm[2], -0.002)                 # behind the camera's plane
+            sites.append(rcm)
+        far_needed = np.concatenate([arc_ref, incision])
+        port, drives = 0, None
+        if drivable is not None:
+            drives = False
+            for k, rcm in enumerate(sites):
+                far = float(np.linalg.norm(far_needed - rcm, axis=1).max())
+                # the park pose is not drawn yet: judged with the least margin
+                candidate = ArmReach(rcm=rcm, min_insertion=0.030, max_insertion=far + 0.020)
+                if drivable(lambda T, r=candidate: r.reachable(T)[0], incision, normal):
+                    port, drives = k, True
+                    break
+        rcm = sites[port]
         for _ in range(50):
             px = (u(70.0, 120.0) if side < 0 else cam.width - u(70.0, 120.0),
                   cam.height / 2 + u(-100.0, 100.0))
@@ -298,10 +334,11 @@ def _draw(rig: Rig, rng: np.random.Generator):
         needed = np.concatenate([arc_ref, incision, tip[None]])
         far = float(np.linalg.norm(needed - rcm, axis=1).max())
         margin = u(0.020, 0.030)
-        reach[name] = ArmReach(rcm=rcm, min_insertion=0.030, max_insertion=far + margin,
-                               max_wrist_angle=math.radians(75.0))
+        # the wrist: the da Vinci Large Needle Driver's (ArmReach's defaults)
+        reach[name] = ArmReach(rcm=rcm, min_insertion=0.030, max_insertion=far + margin)
         grippers.append(Gripper(name, T_tool, opening=OPEN_GAP, shaft_length=SHAFT_LENGTH))
-        arms[name] = {"rcm": _r(rcm), "rcm_from_pad_centre": _r(np.linalg.norm(rcm - centre)),
+        arms[name] = {"rcm": _r(rcm), "port": port, "port_drives": drives,
+                      "rcm_from_pad_centre": _r(np.linalg.norm(rcm - centre)),
                       "max_insertion": _r(far + margin), "park_tip": _r(tip),
                       "park_height": _r(height), "park_px": _r(px, 2)}
     values = {

@@ -345,10 +345,14 @@ NEEDLE_BROKEN = {
                           "[arms] driver:", ("must be below max_insertion",)),
     "arm_rcm_short": (NEEDLE_GOOD + ARM.replace("[0.0, -0.05, -0.02]", "[0.0, -0.05]"),
                       "[arms.driver] rcm[2]:", ("Field required",)),
-    "arm_wrist_in_radians": (NEEDLE_GOOD + ARM + "max_wrist_angle = 1.3\n",
-                             "[arms.driver] max_wrist_angle:", ("unknown key",)),
-    "arm_wrist_too_far": (NEEDLE_GOOD + ARM + "max_wrist_angle_deg = 200.0\n",
-                          "[arms.driver] max_wrist_angle_deg:", ("less than or equal to 180",)),
+    "arm_wrist_in_radians": (NEEDLE_GOOD + ARM + "max_wrist_pitch = 1.3\n",
+                             "[arms.driver] max_wrist_pitch:", ("unknown key",)),
+    "arm_wrist_too_far": (NEEDLE_GOOD + ARM + "max_wrist_yaw_deg = 200.0\n",
+                          "[arms.driver] max_wrist_yaw_deg:", ("less than or equal to 180",)),
+    "arm_old_cone_key": (NEEDLE_GOOD + ARM + "max_wrist_angle_deg = 75.0\n",
+                         "[arms.driver] max_wrist_angle_deg:", ("unknown key",)),
+    "arm_wrist_link_negative": (NEEDLE_GOOD + ARM + "yaw_to_tip = -0.001\n",
+                                "[arms.driver] yaw_to_tip:", ("greater than or equal to 0",)),
 }
 
 
@@ -384,7 +388,8 @@ def test_needle_cell_example_values():
     assert set(arms) == {"left", "right"}
     np.testing.assert_array_equal(arms["left"].rcm, [-0.05, 0.0, -0.015])
     assert arms["right"].max_insertion == 0.16
-    assert arms["left"].max_wrist_angle == pytest.approx(np.radians(75.0))
+    assert arms["left"].max_wrist_pitch == pytest.approx(np.radians(80.0))
+    assert arms["right"].max_wrist_yaw == pytest.approx(np.radians(80.0))
     cell = load_needle_cell(path)
     assert cell.grippers == ("left", "right")
     assert cell.arm_reach("right").max_insertion == 0.16
@@ -403,7 +408,8 @@ def test_needle_thread_and_arm_defaults(tmp_path):
     assert nd.thread_level == 45.0
     arm = load_arms(tmp_path / "n.toml")["driver"]
     assert (arm.min_insertion, arm.max_insertion) == (0.03, 0.2)
-    assert arm.max_wrist_angle == pytest.approx(np.radians(75.0))
+    assert arm.max_wrist_pitch == arm.max_wrist_yaw == pytest.approx(np.radians(80.0))
+    assert (arm.pitch_to_yaw, arm.yaw_to_tip) == (0.0091, 0.0095)
 
 
 def test_needle_cell_needs_its_objects_and_arms(tmp_path):

@@ -20,11 +20,12 @@ from oralnav.daemon.needle_procedure import (
     NeedleProcedure,
     ProcedureSettings,
     StepResult,
+    port_drives,
     step_rates,
 )
 from oralnav.safety.errors import StateError
-from oralnav.sim.needle_cell import ArmReach, NeedleCell
-from oralnav.sim.needle_trials import trial_cell, trial_scene
+from oralnav.sim.needle_cell import NeedleCell
+from oralnav.sim.needle_trials import CT1, trial_cell, trial_scene
 
 FAST = ProcedureSettings(particles=1500)
 
@@ -64,8 +65,7 @@ def test_a_suture_no_arm_reaches_refuses_before_moving():
     """Bad input: a needle and suture out of the arms' reach refuse NG, saying so,
     with nothing moved."""
     scene, reach, info = trial_scene(0)
-    short = {n: ArmReach(r.rcm, r.min_insertion, r.min_insertion + 0.01, r.max_wrist_angle)
-             for n, r in reach.items()}
+    short = {n: replace(r, max_insertion=r.min_insertion + 0.01) for n, r in reach.items()}
     # the parked grippers start out of this reach: start the cell with the true reach,
     # then narrow it the way a changed workspace would
     cell = NeedleCell(scene, reach)
@@ -82,8 +82,9 @@ def test_a_suture_no_arm_reaches_refuses_before_moving():
 
 def test_a_suture_no_arm_drives_one_way_is_driven_the_other():
     """Trial 27: neither wrist can follow the drive across the incision the way it runs
-    (each would bend past 75 deg); the plan drives the same suture the other way, entry
-    and exit swapped about the same point, rather than refusing."""
+    (each would pitch or yaw past the needle driver's 80 deg); the plan drives the same
+    suture the other way, entry and exit swapped about the same point, rather than
+    refusing."""
     _, proc = _procedure(27)
     plan = proc._plan()
     assert plan["drive_direction"] == "reversed"
@@ -100,6 +101,29 @@ def test_a_suture_no_arm_drives_one_way_is_driven_the_other():
     assert same["drive_direction"] == "as given" and same["driver"] == plan["driver"]
     np.testing.assert_allclose(same["entry_ref"], plan["entry_ref"], atol=1e-9)
     np.testing.assert_allclose(same["exit_ref"], plan["exit_ref"], atol=1e-9)
+
+
+def test_ports_are_chosen_so_that_an_arm_drives_the_suture():
+    """Entry port selection (seed 002's ref. [8]) with the procedure's own rule: from the
+    ports trial 8 draws first neither arm can drive its suture either way (the plan
+    refuses, out of reach); with ``port_drives`` the trial takes ports from which the plan
+    finds a driving grasp, and the arm recorded as driving is one that can."""
+    cell, info = trial_cell(8)
+    first = NeedleProcedure(cell, info.incision, info.surface_normal, FAST,
+                            surface_outline=info.surface_outline)
+    with pytest.raises(Exception, match="no arm can drive this suture either way"):
+        first._plan()
+    check = port_drives(CT1, FAST)
+    cell, info = trial_cell(8, drivable=check)
+    arms = info.values["arms"]
+    assert any(a["port_drives"] for a in arms.values())
+    proc = NeedleProcedure(cell, info.incision, info.surface_normal, FAST,
+                           surface_outline=info.surface_outline)
+    plan = proc._plan()
+    assert arms[plan["driver"]]["port_drives"]
+    for name, a in arms.items():      # the record says what the check finds for that arm
+        assert a["port_drives"] == check(lambda T, n=name: cell.reachable(n, T)[0],
+                                         info.incision, info.surface_normal)
 
 
 def test_a_tracker_that_has_not_converged_refuses_before_moving():
@@ -292,11 +316,11 @@ def test_a_needle_near_the_pads_edge_is_lifted_less():
 
 def test_a_carry_that_would_sweep_the_needle_through_the_tissue_goes_over_it():
     """Issue 7, the drive enters where planned (the truth's entry is the tip's first
-    crossing of the surface): on trial 32 the straight path from the hand-off to the
+    crossing of the surface): on trial 7 the straight path from the hand-off to the
     drive's approach turns the needle about the jaws and would sweep its tip through the
-    tissue 20 mm from the planned entry; the approach goes over the tissue instead, and
+    tissue away from the planned entry; the approach goes over the tissue instead, and
     the truth's entry and exit are the planned ones."""
-    cell, proc = _procedure(32, settings=ProcedureSettings())
+    cell, proc = _procedure(7, settings=ProcedureSettings())
     for step in ("NG", "NH"):
         assert proc.run(step).ok
     moves = []

@@ -23,7 +23,7 @@ from oralnav.sim.needle_cell import ArmReach, CellError, NeedleCell
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "config" / "examples" / "needle_cell.toml"
 LOOSE = ArmReach(rcm=np.array([0.0, 0.0, -0.2]), min_insertion=0.0, max_insertion=1.0,
-                 max_wrist_angle=math.pi)
+                 max_wrist_pitch=math.pi, max_wrist_yaw=math.pi)
 
 
 @pytest.fixture(scope="module")
@@ -199,7 +199,7 @@ def test_moving_one_of_two_holders_tears_the_needle_from_the_other(cell):
 
 
 # -- reach ------------------------------------------------------------------------------
-@pytest.mark.parametrize("limit", ["max_insertion", "min_insertion", "max_wrist_angle"])
+@pytest.mark.parametrize("limit", ["max_insertion", "min_insertion", "max_wrist"])
 def test_moving_past_reach_stops_at_the_last_good_increment(cell, limit):
     """Item 4, reach: a move whose path leaves the arm's workspace raises CellError naming
     the limit; the gripper (and the needle it holds) stays at the last reachable
@@ -208,9 +208,8 @@ def test_moving_past_reach_stops_at_the_last_good_increment(cell, limit):
     _pickup(cell, "right", 0.7)
     reach = cell.arm_reach("right")
     start = cell.gripper_pose("right")
-    shaft = start[:3, 3] - reach.rcm
-    shaft /= np.linalg.norm(shaft)
-    if limit == "max_wrist_angle":
+    shaft = reach.wrist(start).shaft
+    if limit == "max_wrist":       # bend the jaws 90 deg further from the shaft
         axis = np.cross(start[:3, 2], shaft)
         target = start.copy()
         target[:3, :3] = Rotation.from_rotvec(-math.radians(90) * axis / np.linalg.norm(axis)
@@ -230,9 +229,62 @@ def test_moving_past_reach_stops_at_the_last_good_increment(cell, limit):
     elif limit == "min_insertion":
         assert reach.min_insertion <= reach.insertion(last) <= reach.min_insertion + 0.001
     else:
-        assert (reach.max_wrist_angle - math.radians(2) <= reach.wrist_angle(last)
-                <= reach.max_wrist_angle)
+        w = reach.wrist(last)
+        worst = max(abs(w.pitch) - reach.max_wrist_pitch, abs(w.yaw) - reach.max_wrist_yaw)
+        assert -math.radians(2.5) <= worst <= 0.0
     np.testing.assert_allclose(cell.truth().T_tool_needle["right"], G, atol=1e-12)
+
+
+def _lnd_pose(reach: ArmReach, shaft: np.ndarray, depth: float, roll: float, pitch: float,
+              yaw: float) -> np.ndarray:
+    """Forward kinematics of the wrist model: the tool pose for the shaft direction
+    ``shaft``, the pitch axis ``depth`` m from the RCM along it, and the three joints."""
+    s = shaft / np.linalg.norm(shaft)
+    a = np.cross([1.0, 0.0, 0.0], s)
+    a /= np.linalg.norm(a)
+    S = np.column_stack([a, np.cross(s, a), s])
+    R_link = S @ Rotation.from_euler("ZY", [roll, pitch]).as_matrix()
+    R = R_link @ Rotation.from_euler("X", yaw).as_matrix()
+    hinge = reach.rcm + depth * s + reach.pitch_to_yaw * R_link[:, 2]
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = hinge + reach.yaw_to_tip * R[:, 2]
+    return T
+
+
+@pytest.mark.parametrize("joints_deg", [(0, 0, 0), (30, 40, -20), (-120, -75, 60),
+                                        (170, 10, 79), (-45, 70, 70)])
+def test_the_wrist_model_inverts_its_own_kinematics(joints_deg):
+    """Item 4, reach (the da Vinci Large Needle Driver's wrist): for a tool pose built from
+    a shaft direction and roll, pitch and yaw, with the 9.1 mm pitch-to-hinge and 9.5 mm
+    hinge-to-tip links, ArmReach.wrist recovers the joints and the shaft to 1e-6."""
+    reach = ArmReach(rcm=np.array([0.01, -0.02, -0.01]))
+    roll, pitch, yaw = np.radians(joints_deg)
+    shaft = np.array([0.3, -0.1, 1.0])
+    T = _lnd_pose(reach, shaft, 0.11, roll, pitch, yaw)
+    w = reach.wrist(T)
+    assert (w.pitch, w.yaw) == pytest.approx((pitch, yaw), abs=1e-6)
+    np.testing.assert_allclose(w.shaft, shaft / np.linalg.norm(shaft), atol=1e-6)
+    assert w.bend == pytest.approx(math.acos(math.cos(pitch) * math.cos(yaw)), abs=1e-6)
+
+
+def test_the_wrist_reaches_what_the_needle_driver_reaches():
+    """Item 4, reach: with the Large Needle Driver's limits (pitch and yaw +-80 deg) the
+    jaws bend 83 deg from the shaft with pitch and yaw at 70 deg each, but not with the
+    pitch at 85 deg (refused naming max_wrist_pitch) nor the yaw at -82 deg
+    (max_wrist_yaw); an unbent tool pointing from the RCM has both joints at zero."""
+    reach = ArmReach(rcm=np.zeros(3), max_insertion=0.3)
+    shaft = np.array([0.0, 0.2, 1.0])
+    ok = _lnd_pose(reach, shaft, 0.12, 0.4, math.radians(70), math.radians(70))
+    assert reach.reachable(ok) == (True, "")
+    assert math.degrees(reach.wrist(ok).bend) == pytest.approx(83.2, abs=0.1)
+    ok_pitch, why = reach.reachable(_lnd_pose(reach, shaft, 0.12, 0.0, math.radians(85), 0.0))
+    assert not ok_pitch and why.startswith("max_wrist_pitch") and "85.0 deg" in why
+    ok_yaw, why = reach.reachable(_lnd_pose(reach, shaft, 0.12, 1.0, 0.2, math.radians(-82)))
+    assert not ok_yaw and why.startswith("max_wrist_yaw") and "-82.0 deg" in why
+    straight = _lnd_pose(reach, shaft, 0.12, 0.3, 0.0, 0.0)
+    w = reach.wrist(straight)
+    assert abs(w.pitch) < 1e-9 and abs(w.yaw) < 1e-9 and w.bend < 1e-6
 
 
 def test_trial_like_park_poses_reach_the_needle(cell):

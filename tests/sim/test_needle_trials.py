@@ -146,3 +146,34 @@ def test_arms_reach_the_needle_and_incision_but_not_everything(trials):
             T[:3, 2] = (far - r.rcm) / np.linalg.norm(far - r.rcm)
             ok, why = r.reachable(T)
             assert not ok and why.startswith("max_insertion")
+
+
+def test_ports_are_selected_for_the_suture():
+    """Item 4, trial scenes (entry port selection, seed 002's ref. [8]): with a
+    ``drivable`` check each arm draws its candidate port sites and takes the first the
+    check accepts, asking it with that port's reach, the incision and the surface normal;
+    a check that accepts none leaves each arm its first site, recorded as not driving. The
+    choice is deterministic per seed."""
+    calls = []
+
+    def third_site(reachable, incision, normal):
+        calls.append((reachable, incision, normal))
+        return len(calls) in (3, 6)        # the third site of each arm
+
+    scene, reach, info = trial_scene(5, drivable=third_site)
+    assert [a["port"] for a in info.values["arms"].values()] == [2, 2]
+    assert all(a["port_drives"] for a in info.values["arms"].values())
+    assert len(calls) == 6
+    np.testing.assert_allclose(calls[0][1], info.incision)
+    np.testing.assert_allclose(calls[0][2], info.surface_normal)
+    assert calls[0][0](np.eye(4)) in (True, False)       # a reach test of a pose
+    calls.clear()
+    again = trial_scene(5, drivable=third_site)[2]
+    assert again.values == info.values
+    _, reach_none, none = trial_scene(5, drivable=lambda *a: False)
+    assert [a["port"] for a in none.values["arms"].values()] == [0, 0]
+    assert not any(a["port_drives"] for a in none.values["arms"].values())
+    np.testing.assert_allclose(reach_none["left"].rcm, none.values["arms"]["left"]["rcm"],
+                               atol=1e-6)
+    # the sites differ: the third is not the first
+    assert not np.allclose(reach["left"].rcm, reach_none["left"].rcm)
