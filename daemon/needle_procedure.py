@@ -103,7 +103,8 @@ class NeedleCellPort(Protocol):
     def grippers(self) -> tuple[str, ...]: ...
     def images(self) -> dict[str, np.ndarray]: ...
     def gripper_pose(self, name: str) -> np.ndarray: ...
-    def reachable(self, name: str, T_ref_tool: np.ndarray) -> tuple[bool, str]: ...
+    def reachable(self, name: str, T_ref_tool: np.ndarray, margin: float = 0.0
+                  ) -> tuple[bool, str]: ...
     def move(self, name: str, T_ref_tool_reported: np.ndarray) -> None: ...
     def close(self, name: str) -> bool: ...
     def open(self, name: str) -> None: ...
@@ -146,7 +147,10 @@ class ProcedureSettings:
     wire within about 1 mm of where they aim). ``grasp_margin``: the driving grasp is
     chosen this much (arc) further from the swage than the drive needs, and the pick-up
     grasp this much further from it than ``separation``, so that the grasps the arms
-    actually make still pass. ``placement_tolerance``: how far the tracked needle's
+    actually make still pass. ``reach_margin`` (rad): plans keep the arms' wrist joints
+    this far inside their limits, so that a grasp made a degree or two off its plan, and
+    a path between planned poses, stay in reach (the moves and the checks of the grasp
+    actually made use the limits themselves). ``placement_tolerance``: how far the tracked needle's
     entry and exit (its arc's crossings of the tissue surface) may lie from the plan's
     (ND fails otherwise), and in the truth check the true ones.
     """
@@ -189,6 +193,7 @@ class ProcedureSettings:
     incision_mask_px: int = 16
     placement_tolerance: float = 0.002
     grasp_margin: float = 0.0015
+    reach_margin: float = math.radians(3.0)
     max_sigma_position: float = 0.0005
     max_sigma_angle: float = math.radians(2.5)
     seed: int = 0
@@ -217,7 +222,7 @@ class ProcedureSettings:
                      "hold_tolerance", "separation", "view_margin_px", "regrasp_exit_margin",
                      "regrasp_tip_margin", "depth_window", "placement_tolerance",
                      "swage_clearance", "pull_lift", "pull_tolerance", "follow_ratio",
-                     "carry_clearance"):
+                     "carry_clearance", "reach_margin"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise NeedleError(f"needle procedure: {name} must be >= 0, got {v}")
@@ -358,14 +363,14 @@ def drive_ways(incision: np.ndarray, normal: np.ndarray, geometry: SutureGeometr
 
 
 def port_drives(needle: Needle, settings: ProcedureSettings | None = None
-                ) -> Callable[[Callable[[np.ndarray], bool], np.ndarray, np.ndarray], bool]:
+                ) -> Callable[[Any, np.ndarray, np.ndarray], bool]:
     """Entry port selection (seed 002's grasp rule comes from its ref. [8], Liu and
     Cavusoglu, "Needle grasp and entry port selection ..."): a check
-    ``drives(reachable, incision, normal) -> bool`` of whether an arm whose reach is
-    ``reachable(T_ref_tool) -> bool`` can drive the planned suture either way with a
-    grasp the plan would choose, for a cell set up before the procedure (the planner's
-    own rule, :meth:`NeedleProcedure._plan`). A suture the settings refuse drives from
-    no port."""
+    ``drives(reach, incision, normal) -> bool`` of whether an arm whose reach is ``reach``
+    (``reach.reachable(T_ref_tool, margin) -> (ok, why)``, as the simulator's
+    ``ArmReach``) can drive the planned suture either way with a grasp the plan would
+    choose, for a cell set up before the procedure (the planner's own rule and margin,
+    :meth:`NeedleProcedure._plan`). A suture the settings refuse drives from no port."""
     s = settings or ProcedureSettings()
     pick = _drive_pick(s)
     try:
@@ -373,10 +378,13 @@ def port_drives(needle: Needle, settings: ProcedureSettings | None = None
     except NeedleError:
         geometry = None
 
-    def drives(reachable: Callable[[np.ndarray], bool], incision: np.ndarray,
-               normal: np.ndarray) -> bool:
+    def drives(reach: Any, incision: np.ndarray, normal: np.ndarray) -> bool:
         if geometry is None:
             return False
+
+        def reachable(T: np.ndarray) -> bool:
+            return bool(reach.reachable(T, s.reach_margin)[0])
+
         try:
             ways = drive_ways(np.asarray(incision, float), np.asarray(normal, float),
                               geometry, s)
@@ -597,9 +605,14 @@ class NeedleProcedure:
         except Exception as exc:   # the cell's own error type; the arm stopped short
             raise _StepFailed("move_stopped", f"{what}: {exc}") from None
 
-    def _reach(self, arm: str, poses: Sequence[np.ndarray]) -> tuple[bool, str]:
+    def _reach(self, arm: str, poses: Sequence[np.ndarray], margin: float | None = None
+               ) -> tuple[bool, str]:
+        """Whether ``arm`` reaches every pose, and the limit that refuses one. Plans keep
+        the wrist ``reach_margin`` inside its limits (``margin``, rad, by default); a
+        check of what is about to run on the grasp actually made passes 0."""
+        m = self.s.reach_margin if margin is None else margin
         for T in poses:
-            ok, why = self.cell.reachable(arm, T)
+            ok, why = self.cell.reachable(arm, T, m)
             if not ok:
                 return False, why
         return True, ""
@@ -674,7 +687,8 @@ class NeedleProcedure:
                 if np.linalg.norm(w) > 0.2] + [self.normal]
         for w in ways:
             move = _translation(self.s.hold_check * w)
-            if self._reach(arm, [move @ T])[0] and not self._view(move @ T_N, [move @ T]):
+            if (self._reach(arm, [move @ T], 0.0)[0]
+                    and not self._view(move @ T_N, [move @ T])):
                 return move @ T
         return _translation(self.s.hold_check * self.normal) @ T
 
@@ -869,7 +883,7 @@ class NeedleProcedure:
                 try:
                     choice = select_grasp(
                         self.needle, drive, pick,
-                        reachable=lambda T, a=arm: self.cell.reachable(a, T)[0])
+                        reachable=lambda T, a=arm: self._reach(a, [T])[0])
                 except NeedleError as exc:
                     why[f"{arm} ({way})"] = str(exc)
                     continue
@@ -1030,7 +1044,7 @@ class NeedleProcedure:
             raise _StepFailed("lost_track", f"hand-off: the tracker lost the needle at the "
                                             f"hand-off pose ({tr.reason})")
         T_B = tr.pose @ invert(self.drive_choice.G_TN)
-        ok, why = self._reach(B, [T_B, _back_off(T_B, s.approach)])
+        ok, why = self._reach(B, [T_B, _back_off(T_B, s.approach)], 0.0)
         if not ok:
             raise _StepFailed("out_of_reach", f"hand-off: {B!r} cannot reach the needle where "
                                               f"it was carried ({why})")
@@ -1169,7 +1183,7 @@ class NeedleProcedure:
             raise _refuse("grasp_unfit", f"drive: {exc}") from None
         drive = self.drive.with_grasp(G_TN)
         assert drive.G_PT is not None
-        ok, why = self._reach(arm, list(drive.G_PT))
+        ok, why = self._reach(arm, list(drive.G_PT), 0.0)
         if not ok:
             raise _refuse("out_of_reach", f"drive: {arm!r} cannot follow the drive with the "
                                           f"grasp it holds ({why})")
@@ -1189,7 +1203,7 @@ class NeedleProcedure:
             except NeedleError as exc:
                 last = str(exc)
                 continue
-            ok, why = self.cell.reachable(arm, T)
+            ok, why = self._reach(arm, [T], 0.0)
             if ok:
                 return T
             last = why
@@ -1221,8 +1235,12 @@ class NeedleProcedure:
         order = [B] + [a for a in self.arms if a != B]
         last = ""
         for arm in order:
+            here = self.cell.gripper_pose(arm)
             for g in grasps:
-                ok, why = self._reach(arm, [g.T_ref_T, _back_off(g.T_ref_T, s.approach)])
+                # the approach from where the arm is too: a straight path between two
+                # poses the wrist reaches may bend it past its limits
+                approach = _back_off(g.T_ref_T, s.approach)
+                ok, why = self._reach(arm, [g.T_ref_T, *_path(here, approach)])
                 if ok:
                     try:
                         pull = pull_poses(np.eye(4), self.G_CS, T_N, g.G_TN, self.needle,
@@ -1245,7 +1263,7 @@ class NeedleProcedure:
         why = ""
         for tilt in _BACK_OFF_TILTS:
             goal = _back_off(T0, self.s.retreat, tilt)
-            ok, why = self._reach(arm, _path(T0, goal))
+            ok, why = self._reach(arm, _path(T0, goal), 0.0)
             if ok:
                 self._move(arm, goal, f"{what}: the released gripper's back-off")
                 return

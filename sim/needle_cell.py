@@ -177,10 +177,11 @@ class ArmReach:
         """Angle (rad) between the tool's ``z`` axis and the shaft."""
         return self.wrist(T_ref_tool).bend
 
-    def reachable(self, T_ref_tool: np.ndarray) -> tuple[bool, str]:
-        """``(ok, reason)``: whether the arm can put its tool at ``T_ref_tool`` (4x4, m);
-        the reason names the limit that refuses it (``min_insertion``, ``max_insertion``,
-        ``max_wrist_pitch``, ``max_wrist_yaw``), empty when reachable."""
+    def reachable(self, T_ref_tool: np.ndarray, margin: float = 0.0) -> tuple[bool, str]:
+        """``(ok, reason)``: whether the arm can put its tool at ``T_ref_tool`` (4x4, m)
+        with its wrist joints ``margin`` (rad) inside their limits; the reason names the
+        limit that refuses it (``min_insertion``, ``max_insertion``, ``max_wrist_pitch``,
+        ``max_wrist_yaw``), empty when reachable."""
         L = self.insertion(T_ref_tool)
         if L < self.min_insertion:
             return False, (f"min_insertion: the tip would be {L * 1e3:.1f} mm from the RCM, "
@@ -188,12 +189,26 @@ class ArmReach:
         if L > self.max_insertion:
             return False, (f"max_insertion: the tip would be {L * 1e3:.1f} mm from the RCM, "
                            f"beyond {self.max_insertion * 1e3:.1f} mm")
-        w = self.wrist(T_ref_tool)
+        # A quick pass first: the jaws' bend from the shaft bounds both joints (for bends
+        # up to 90 deg, cos bend = cos pitch cos yaw), and the shaft, which passes within
+        # pitch_to_yaw of the hinge, leans at most asin(pitch_to_yaw / |hinge - RCM|) from
+        # the RCM-to-hinge line; most poses a planner asks about are settled by it.
+        T = np.asarray(T_ref_tool, dtype=float)
+        z = T[:3, 2]
+        d = T[:3, 3] - self.yaw_to_tip * z - self.rcm
+        n = float(np.linalg.norm(d))
+        if n > self.pitch_to_yaw:
+            bend0 = math.acos(max(-1.0, min(1.0, float(z @ d) / n)))
+            if bend0 + math.asin(self.pitch_to_yaw / n) <= min(
+                    self.max_wrist_pitch - margin, self.max_wrist_yaw - margin, math.pi / 2):
+                return True, ""
+        w = self.wrist(T)
         for name, joint, v, lim in (("max_wrist_pitch", "pitch", w.pitch, self.max_wrist_pitch),
                                     ("max_wrist_yaw", "yaw", w.yaw, self.max_wrist_yaw)):
-            if abs(v) > lim:
+            if abs(v) > lim - margin:
+                kept = f" less a {math.degrees(margin):.1f} deg margin" if margin else ""
                 return False, (f"{name}: the wrist would {joint} {math.degrees(v):.1f} deg, "
-                               f"beyond +-{math.degrees(lim):.1f} deg (the jaws "
+                               f"beyond +-{math.degrees(lim):.1f} deg{kept} (the jaws "
                                f"{math.degrees(w.bend):.1f} deg from the shaft)")
         return True, ""
 
@@ -396,11 +411,13 @@ class NeedleCell:
     def jaw_open(self, name: str) -> bool:
         return not self._closed[self._check_name(name)]
 
-    def reachable(self, name: str, T_ref_tool: np.ndarray) -> tuple[bool, str]:
+    def reachable(self, name: str, T_ref_tool: np.ndarray, margin: float = 0.0
+                  ) -> tuple[bool, str]:
         """Whether arm ``name`` can put its tool at the *reported* pose ``T_ref_tool``
-        (what the planner sees), and the limit that refuses it."""
-        return self._reach[self._check_name(name)].reachable(_pose(T_ref_tool,
-                                                                   "T_ref_tool"))
+        (what the planner sees) with its wrist joints ``margin`` (rad) inside their
+        limits, and the limit that refuses it."""
+        return self._reach[self._check_name(name)].reachable(
+            _pose(T_ref_tool, "T_ref_tool"), margin)
 
     # -- what the procedure may do ----------------------------------------------------
     def move(self, name: str, T_ref_tool_reported: np.ndarray, *,

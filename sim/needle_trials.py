@@ -81,11 +81,11 @@ MAX_ATTEMPTS = 200
 #: Port sites drawn per arm when the ports are selected for the suture.
 PORT_CANDIDATES = 12
 
-#: ``drivable(reachable, incision, normal) -> bool``: whether an arm whose reach is
-#: ``reachable(T_ref_tool) -> bool`` can drive the planned suture across ``incision``
-#: (2, 3) on the surface of ``normal`` (3,), reference frame (m);
-#: ``oralnav.daemon.needle_procedure.port_drives`` makes the procedure's.
-PortCheck = Callable[[Callable[[np.ndarray], bool], np.ndarray, np.ndarray], bool]
+#: ``drivable(reach, incision, normal) -> bool``: whether an arm of :class:`ArmReach`
+#: ``reach`` can drive the planned suture across ``incision`` (2, 3) on the surface of
+#: ``normal`` (3,), reference frame (m); ``oralnav.daemon.needle_procedure.port_drives``
+#: makes the procedure's.
+PortCheck = Callable[[ArmReach, np.ndarray, np.ndarray], bool]
 
 
 @dataclass(frozen=True)
@@ -172,7 +172,7 @@ def trial_scene(seed: int, *, difficulty: float = 1.0, rig_file: str | Path = RI
                 drivable: PortCheck | None = None
                 ) -> tuple[Scene, dict[str, ArmReach], TrialInfo]:
     """The scene, the arms' reach and the record of trial ``seed`` (see the module
-    docstring); :func:`trial_cell` builds the cell from them. ``drivable(reachable,
+    docstring); :func:`trial_cell` builds the cell from them. ``drivable(reach,
     incision, normal) -> bool``: entry port selection (the module docstring); without it
     each arm takes the one port site it draws."""
     if not (isinstance(seed, int | np.integer) and 0 <= seed < 2**63):
@@ -302,7 +302,7 @@ def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None)
                 far = float(np.linalg.norm(far_needed - rcm, axis=1).max())
                 # the park pose is not drawn yet: judged with the least margin
                 candidate = ArmReach(rcm=rcm, min_insertion=0.030, max_insertion=far + 0.020)
-                if drivable(lambda T, r=candidate: r.reachable(T)[0], incision, normal):
+                if drivable(candidate, incision, normal):
                     port, drives = k, True
                     break
         rcm = sites[port]

@@ -81,11 +81,12 @@ def test_a_suture_no_arm_reaches_refuses_before_moving():
 
 
 def test_a_suture_no_arm_drives_one_way_is_driven_the_other():
-    """Trial 27: neither wrist can follow the drive across the incision the way it runs
-    (each would pitch or yaw past the needle driver's 80 deg); the plan drives the same
-    suture the other way, entry and exit swapped about the same point, rather than
-    refusing."""
-    _, proc = _procedure(27)
+    """Trial 30 (ports chosen for the suture): neither wrist can follow the drive across
+    the incision the way it runs (each would pitch or yaw past the needle driver's 80 deg
+    less the plan's margin); the plan drives the same suture the other way, entry and
+    exit swapped about the same point, rather than refusing."""
+    ports = port_drives(CT1, FAST)
+    _, proc = _procedure(30, drivable=ports)
     plan = proc._plan()
     assert plan["drive_direction"] == "reversed"
     inc = proc.incision
@@ -94,7 +95,7 @@ def test_a_suture_no_arm_drives_one_way_is_driven_the_other():
     mid = 0.5 * (np.array(plan["entry_ref"]) + np.array(plan["exit_ref"]))
     assert np.linalg.norm(mid - inc.mean(axis=0)) < 0.003  # the same suture point
     # the same as the plan for the incision given the other way round
-    cell, info = trial_cell(27)
+    cell, info = trial_cell(30, drivable=ports)
     other = NeedleProcedure(cell, info.incision[::-1], info.surface_normal, FAST,
                             surface_outline=info.surface_outline)
     same = other._plan()
@@ -122,8 +123,8 @@ def test_ports_are_chosen_so_that_an_arm_drives_the_suture():
     plan = proc._plan()
     assert arms[plan["driver"]]["port_drives"]
     for name, a in arms.items():      # the record says what the check finds for that arm
-        assert a["port_drives"] == check(lambda T, n=name: cell.reachable(n, T)[0],
-                                         info.incision, info.surface_normal)
+        assert a["port_drives"] == check(cell.arm_reach(name), info.incision,
+                                         info.surface_normal)
 
 
 def test_a_tracker_that_has_not_converged_refuses_before_moving():

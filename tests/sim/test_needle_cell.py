@@ -272,7 +272,8 @@ def test_the_wrist_reaches_what_the_needle_driver_reaches():
     """Item 4, reach: with the Large Needle Driver's limits (pitch and yaw +-80 deg) the
     jaws bend 83 deg from the shaft with pitch and yaw at 70 deg each, but not with the
     pitch at 85 deg (refused naming max_wrist_pitch) nor the yaw at -82 deg
-    (max_wrist_yaw); an unbent tool pointing from the RCM has both joints at zero."""
+    (max_wrist_yaw); a pitch of 78 deg passes, but not with a 3 deg margin; an unbent
+    tool pointing from the RCM has both joints at zero."""
     reach = ArmReach(rcm=np.zeros(3), max_insertion=0.3)
     shaft = np.array([0.0, 0.2, 1.0])
     ok = _lnd_pose(reach, shaft, 0.12, 0.4, math.radians(70), math.radians(70))
@@ -282,6 +283,10 @@ def test_the_wrist_reaches_what_the_needle_driver_reaches():
     assert not ok_pitch and why.startswith("max_wrist_pitch") and "85.0 deg" in why
     ok_yaw, why = reach.reachable(_lnd_pose(reach, shaft, 0.12, 1.0, 0.2, math.radians(-82)))
     assert not ok_yaw and why.startswith("max_wrist_yaw") and "-82.0 deg" in why
+    near = _lnd_pose(reach, shaft, 0.12, 0.0, math.radians(78), 0.0)
+    assert reach.reachable(near) == (True, "")        # a plan's margin keeps off the limit
+    ok_margin, why = reach.reachable(near, margin=math.radians(3))
+    assert not ok_margin and "less a 3.0 deg margin" in why
     straight = _lnd_pose(reach, shaft, 0.12, 0.3, 0.0, 0.0)
     w = reach.wrist(straight)
     assert abs(w.pitch) < 1e-9 and abs(w.yaw) < 1e-9 and w.bend < 1e-6
@@ -419,3 +424,21 @@ def test_bad_input_is_refused(example):
     np.testing.assert_array_equal(cell.gripper_pose("left"), before)
     with pytest.raises(CellError, match="max_insertion"):
         ArmReach(rcm=np.zeros(3), min_insertion=0.1, max_insertion=0.05)
+
+
+def test_the_quick_reach_pass_agrees_with_the_solved_wrist():
+    """Item 4, reach: ArmReach.reachable settles most poses by a bound on the jaws' bend
+    before solving the wrist; over 3000 random tool poses, with and without a planning
+    margin, its verdict is the one the solved joints and the insertion give."""
+    reach = ArmReach(rcm=np.zeros(3), max_insertion=0.3)
+    rng = np.random.default_rng(17)
+    for i in range(3000):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.random(random_state=i).as_matrix()
+        T[:3, 3] = rng.normal(size=3) * 0.03 + [0.0, 0.0, 0.12]
+        margin = math.radians(3.0) if i % 2 else 0.0
+        w = reach.wrist(T)
+        solved = (abs(w.pitch) <= reach.max_wrist_pitch - margin
+                  and abs(w.yaw) <= reach.max_wrist_yaw - margin
+                  and reach.min_insertion <= w.insertion <= reach.max_insertion)
+        assert reach.reachable(T, margin)[0] == solved, i

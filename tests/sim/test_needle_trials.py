@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from oralnav.control.geometry import invert, transform_points
-from oralnav.sim.needle_cell import CellError
+from oralnav.sim.needle_cell import ArmReach, CellError
 from oralnav.sim.needle_trials import trial_cell, trial_scene
 
 SEEDS = range(20)
@@ -151,13 +151,13 @@ def test_arms_reach_the_needle_and_incision_but_not_everything(trials):
 def test_ports_are_selected_for_the_suture():
     """Item 4, trial scenes (entry port selection, seed 002's ref. [8]): with a
     ``drivable`` check each arm draws its candidate port sites and takes the first the
-    check accepts, asking it with that port's reach, the incision and the surface normal;
-    a check that accepts none leaves each arm its first site, recorded as not driving. The
-    choice is deterministic per seed."""
+    check accepts, asking it with that port's reach (an ArmReach), the incision and the
+    surface normal; a check that accepts none leaves each arm its first site, recorded as
+    not driving. The choice is deterministic per seed."""
     calls = []
 
-    def third_site(reachable, incision, normal):
-        calls.append((reachable, incision, normal))
+    def third_site(reach, incision, normal):
+        calls.append((reach, incision, normal))
         return len(calls) in (3, 6)        # the third site of each arm
 
     scene, reach, info = trial_scene(5, drivable=third_site)
@@ -166,7 +166,7 @@ def test_ports_are_selected_for_the_suture():
     assert len(calls) == 6
     np.testing.assert_allclose(calls[0][1], info.incision)
     np.testing.assert_allclose(calls[0][2], info.surface_normal)
-    assert calls[0][0](np.eye(4)) in (True, False)       # a reach test of a pose
+    assert isinstance(calls[0][0], ArmReach)          # the candidate port's reach
     calls.clear()
     again = trial_scene(5, drivable=third_site)[2]
     assert again.values == info.values
