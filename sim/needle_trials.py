@@ -26,11 +26,12 @@ The layout, in the stereo endoscope's reference frame (the left channel; metres)
   Cavusoglu, "Needle grasp and entry port selection ..."), when a ``drivable`` check is
   given: each arm draws 12 port sites there and takes the first from which the planned
   suture can be driven (the record's ``port``, and ``port_drives`` false when none
-  could: the arm takes its first site, and the trial may fail by reach); reach:
-  insertion 30 mm to 20-30 mm beyond the farthest point of the needle, the incision and
-  the park pose; the wrist of a da Vinci Large Needle Driver (pitch and yaw +-80 deg,
-  :class:`ArmReach`). So the needle and the incision are reachable by both arms, and the
-  pad's far side, or the space around the RCM, may not be.
+  could: the arm takes its first site, and the trial may fail by reach); reach: the
+  dVRK manipulator's insertion, the tip 30-240 mm from the RCM, and the wrist of a da
+  Vinci Large Needle Driver (pitch and yaw +-80 deg, :class:`ArmReach`). So the whole
+  pad lies within the insertion range of both arms (until session 17 the insertion
+  stopped 20-30 mm beyond the farthest point of the needle, the incision and the park
+  pose, a limit of our own); what an arm cannot do is set by its wrist and its port.
 
 Imaging: background 20-50 DN, pad 150-200, needle 60-90 with a specular 120-200,
 illumination gradient each in [-0.35, 0.35], blur 0.8-1.5 px, read noise 1-3 DN, shot
@@ -78,6 +79,11 @@ EDGE_CLEARANCE = 0.004
 BORDER_PX = 20.0
 GRIPPER_CLEARANCE_PX = 10.0
 MAX_ATTEMPTS = 200
+#: The arms' insertion range (m, the tip's distance from the RCM): the dVRK patient-side
+#: manipulator's insertion joint runs 0-240 mm (sawIntuitiveResearchKit,
+#: share/kinematic/psm.json); the first 30 mm stay in the cannula.
+MIN_INSERTION = 0.030
+MAX_INSERTION = 0.240
 #: Port sites drawn per arm when the ports are selected for the suture.
 PORT_CANDIDATES = 12
 
@@ -294,14 +300,12 @@ def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None)
             rcm = centre + np.array([lateral, vertical, -depth])
             rcm[2] = min(rcm[2], -0.002)                 # behind the camera's plane
             sites.append(rcm)
-        far_needed = np.concatenate([arc_ref, incision])
         port, drives = 0, None
         if drivable is not None:
             drives = False
             for k, rcm in enumerate(sites):
-                far = float(np.linalg.norm(far_needed - rcm, axis=1).max())
-                # the park pose is not drawn yet: judged with the least margin
-                candidate = ArmReach(rcm=rcm, min_insertion=0.030, max_insertion=far + 0.020)
+                candidate = ArmReach(rcm=rcm, min_insertion=MIN_INSERTION,
+                                     max_insertion=MAX_INSERTION)
                 if drivable(candidate, incision, normal):
                     port, drives = k, True
                     break
@@ -332,14 +336,15 @@ def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None)
         else:
             return None
         needed = np.concatenate([arc_ref, incision, tip[None]])
-        far = float(np.linalg.norm(needed - rcm, axis=1).max())
-        margin = u(0.020, 0.030)
+        if float(np.linalg.norm(needed - rcm, axis=1).max()) > MAX_INSERTION:
+            return None       # not with the shipped rig: the pad is 80-120 mm away
         # the wrist: the da Vinci Large Needle Driver's (ArmReach's defaults)
-        reach[name] = ArmReach(rcm=rcm, min_insertion=0.030, max_insertion=far + margin)
+        reach[name] = ArmReach(rcm=rcm, min_insertion=MIN_INSERTION,
+                               max_insertion=MAX_INSERTION)
         grippers.append(Gripper(name, T_tool, opening=OPEN_GAP, shaft_length=SHAFT_LENGTH))
         arms[name] = {"rcm": _r(rcm), "port": port, "port_drives": drives,
                       "rcm_from_pad_centre": _r(np.linalg.norm(rcm - centre)),
-                      "max_insertion": _r(far + margin), "park_tip": _r(tip),
+                      "max_insertion": MAX_INSERTION, "park_tip": _r(tip),
                       "park_height": _r(height), "park_px": _r(px, 2)}
     values = {
         "pad": {"centre": _r(centre), "tilt_deg": _r(math.degrees(tilt), 4),

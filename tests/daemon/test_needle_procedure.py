@@ -81,12 +81,12 @@ def test_a_suture_no_arm_reaches_refuses_before_moving():
 
 
 def test_a_suture_no_arm_drives_one_way_is_driven_the_other():
-    """Trial 30 (ports chosen for the suture): neither wrist can follow the drive across
+    """Trial 39 (ports chosen for the suture): neither wrist can follow the drive across
     the incision the way it runs (each would pitch or yaw past the needle driver's 80 deg
     less the plan's margin); the plan drives the same suture the other way, entry and
     exit swapped about the same point, rather than refusing."""
     ports = port_drives(CT1, FAST)
-    _, proc = _procedure(30, drivable=ports)
+    _, proc = _procedure(39, drivable=ports)
     plan = proc._plan()
     assert plan["drive_direction"] == "reversed"
     inc = proc.incision
@@ -95,7 +95,7 @@ def test_a_suture_no_arm_drives_one_way_is_driven_the_other():
     mid = 0.5 * (np.array(plan["entry_ref"]) + np.array(plan["exit_ref"]))
     assert np.linalg.norm(mid - inc.mean(axis=0)) < 0.003  # the same suture point
     # the same as the plan for the incision given the other way round
-    cell, info = trial_cell(30, drivable=ports)
+    cell, info = trial_cell(39, drivable=ports)
     other = NeedleProcedure(cell, info.incision[::-1], info.surface_normal, FAST,
                             surface_outline=info.surface_outline)
     same = other._plan()
@@ -287,10 +287,12 @@ def test_bench_classes_a_drive_caught_by_the_regrasp_apart_from_undetected():
 
 def test_a_regrasp_that_holds_nothing_is_caught_by_the_pull():
     """Issue 7, the regrasp's hold is shown by the pull (no step moves on a hold it has
-    not seen): on trial 0 the regrasp closes its jaws on the tip; if they then let go
-    (as if they had closed on nothing), the pull's look finds the needle where it was,
-    not where the jaws took it, and NP fails with grasp_missed, not done."""
-    cell, proc = _procedure(0, settings=ProcedureSettings())
+    not seen): on trial 1 (ports chosen for the suture) the regrasp closes its jaws on
+    the tip; if they then let go (as if they had closed on nothing), the pull's look
+    finds the needle where it was, not where the jaws took it, and NP fails with
+    grasp_missed, not done."""
+    cell, proc = _procedure(1, settings=ProcedureSettings(),
+                            drivable=port_drives(CT1, ProcedureSettings()))
     for step in ("NG", "NH", "ND", "NR"):
         r = proc.run(step)
         assert r.ok and r.truth_ok, r

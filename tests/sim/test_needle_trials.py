@@ -127,20 +127,22 @@ def test_arms_reach_the_needle_and_incision_but_not_everything(trials):
     """Item 4, trial scenes: each arm's RCM sits beside the endoscope (40-60 mm to its
     side of the pad centre, behind the camera's plane, 120-150 mm or so from the pad), its
     parked gripper is reachable, every point of the needle and the incision is within its
-    insertion range, and a point 60 mm beyond the pad's centre along the shaft is not."""
+    insertion range (the dVRK manipulator's, 30-240 mm from the RCM), and a point 130 mm
+    beyond the pad's centre along the shaft is not."""
     for seed in SEEDS:
         scene, reach, info = trials[seed]
         centre = scene.pads[0].T_ref_pad[:3, 3]
         arc = transform_points(scene.needles[0].T_ref_needle, scene.needles[0].needle.points(64))
         for g, side in zip(scene.grippers, (-1.0, 1.0), strict=True):
             r = reach[g.name]
+            assert (r.min_insertion, r.max_insertion) == (0.030, 0.240)
             assert r.rcm[2] < 0.0
             assert 0.040 <= side * (r.rcm[0] - centre[0]) <= 0.060 + 1e-12
             assert 0.115 <= np.linalg.norm(r.rcm - centre) <= 0.160
             assert r.reachable(g.T_ref_tool) == (True, "")
             dist = np.linalg.norm(np.concatenate([arc, info.incision]) - r.rcm, axis=1)
             assert np.all((dist >= r.min_insertion) & (dist <= r.max_insertion - 0.02))
-            far = centre + 0.06 * (centre - r.rcm) / np.linalg.norm(centre - r.rcm)
+            far = centre + 0.13 * (centre - r.rcm) / np.linalg.norm(centre - r.rcm)
             T = np.eye(4)
             T[:3, 3] = far
             T[:3, 2] = (far - r.rcm) / np.linalg.norm(far - r.rcm)
