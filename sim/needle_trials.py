@@ -299,17 +299,17 @@ def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None)
             depth = math.sqrt(max(dist**2 - lateral**2 - vertical**2, 0.0))
             rcm = centre + np.array([lateral, vertical, -depth])
             rcm[2] = min(rcm[2], -0.002)                 # behind the camera's plane
-            sites.append(rcm)
+            # the wrist: the da Vinci Large Needle Driver's (ArmReach's defaults)
+            sites.append(ArmReach(rcm=rcm, min_insertion=MIN_INSERTION,
+                                  max_insertion=MAX_INSERTION))
         port, drives = 0, None
         if drivable is not None:
             drives = False
-            for k, rcm in enumerate(sites):
-                candidate = ArmReach(rcm=rcm, min_insertion=MIN_INSERTION,
-                                     max_insertion=MAX_INSERTION)
-                if drivable(candidate, incision, normal):
+            for k, site in enumerate(sites):
+                if drivable(site, incision, normal):
                     port, drives = k, True
                     break
-        rcm = sites[port]
+        rcm = sites[port].rcm
         for _ in range(50):
             px = (u(70.0, 120.0) if side < 0 else cam.width - u(70.0, 120.0),
                   cam.height / 2 + u(-100.0, 100.0))
@@ -338,9 +338,7 @@ def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None)
         needed = np.concatenate([arc_ref, incision, tip[None]])
         if float(np.linalg.norm(needed - rcm, axis=1).max()) > MAX_INSERTION:
             return None       # not with the shipped rig: the pad is 80-120 mm away
-        # the wrist: the da Vinci Large Needle Driver's (ArmReach's defaults)
-        reach[name] = ArmReach(rcm=rcm, min_insertion=MIN_INSERTION,
-                               max_insertion=MAX_INSERTION)
+        reach[name] = sites[port]
         grippers.append(Gripper(name, T_tool, opening=OPEN_GAP, shaft_length=SHAFT_LENGTH))
         arms[name] = {"rcm": _r(rcm), "port": port, "port_drives": drives,
                       "rcm_from_pad_centre": _r(np.linalg.norm(rcm - centre)),
