@@ -675,7 +675,14 @@ class NeedleTracker:
         s = self.s
         # local parameters are right-multiplied (frame N): a motion applied on the
         # left leaves their covariance as it was
-        drift = np.array([s.tilt_drift, s.tilt_drift, s.slide_drift] + 3 * [s.position_drift])
+        # the slide is the wire slipping in the jaws (or the tissue giving along the
+        # arc): it takes a motion, or the jaws closing (an untrusted look). A trusted
+        # look with nothing moved adds none, where the views do not see the ends
+        # (the jaws hide one) would otherwise let it grow by one drift per look until
+        # the track counts as lost while the pose is as good as before
+        moved = not trusted or not np.allclose(delta, np.eye(4), rtol=0.0, atol=1e-12)
+        slide = s.slide_drift if moved else 0.0
+        drift = np.array([s.tilt_drift, s.tilt_drift, slide] + 3 * [s.position_drift])
         T_b, cov = self._belief
         self._belief = (np.asarray(delta, dtype=float) @ T_b, cov + np.diag(drift ** 2))
 
