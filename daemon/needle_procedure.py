@@ -122,7 +122,11 @@ class ProcedureSettings:
     opened gripper backs off this much), ``hold_check`` (the hand-off's check motion,
     square to the camera's line of sight where the arm reaches: the tracked needle must
     follow within ``hold_tolerance``); ``pull_tolerance``: how near where the pull took
-    the jaws the needle must be seen after it (the regrasp's hold is shown by the pull);
+    the jaws the needle must be seen after it (the regrasp's hold is shown by the pull),
+    looked at where the pulled needle, turned about its centre and raised by one of
+    ``show_heights``, shows to the cameras (:meth:`NeedleProcedure._show_pose`: first
+    where the view passes with ``strict_view_angle`` less face-on angle and
+    ``strict_visible`` more of the needle in view);
     ``follow_ratio``: after a long motion a needle this share of the motion's length
     from where the jaws took it still followed them (the tolerance grows with the
     motion: the tracker's error after a turn grows with it, while a needle the jaws let
@@ -162,6 +166,9 @@ class ProcedureSettings:
     pull_poses: int = 30
     swage_clearance: float = 0.002
     pull_lift: float = 0.010
+    show_heights: tuple[float, ...] = (0.0, 0.005, 0.010)
+    strict_view_angle: float = math.radians(15.0)
+    strict_visible: float = 0.1
     approach: float = 0.005
     lift: float = 0.010
     lift_low: float = 0.005
@@ -222,7 +229,8 @@ class ProcedureSettings:
                      "hold_tolerance", "separation", "view_margin_px", "regrasp_exit_margin",
                      "regrasp_tip_margin", "depth_window", "placement_tolerance",
                      "swage_clearance", "pull_lift", "pull_tolerance", "follow_ratio",
-                     "carry_clearance", "reach_margin"):
+                     "carry_clearance", "reach_margin", "strict_view_angle",
+                     "strict_visible"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise NeedleError(f"needle procedure: {name} must be >= 0, got {v}")
@@ -236,6 +244,10 @@ class ProcedureSettings:
                               "updates >= 1")
         if not self.handoff_heights:
             raise NeedleError("needle procedure: handoff_heights needs a value")
+        if not self.show_heights or not all(math.isfinite(h) and h >= 0
+                                            for h in self.show_heights):
+            raise NeedleError(f"needle procedure: show_heights needs values >= 0, got "
+                              f"{self.show_heights!r}")
 
 
 @dataclass
@@ -320,10 +332,22 @@ def _turns(step_deg: float = 30.0, axes: int = 40) -> list[np.ndarray]:
 _HANDOFF_TURNS = _turns()
 
 
-def _path(T0: np.ndarray, T1: np.ndarray, n: int = 8) -> list[np.ndarray]:
+#: A checked path's spacing (m, rad): the simulated cell's motion increments, so that a
+#: long turn is checked where the cell will check it (a wrist limit crossed between two
+#: samples 20 deg apart stops the motion half-way).
+_PATH_STEP = 0.001
+_PATH_TURN = math.radians(2.0)
+
+
+def _path(T0: np.ndarray, T1: np.ndarray, n: int | None = None) -> list[np.ndarray]:
     """``n`` poses along the straight-line, slerp path from ``T0`` to ``T1`` (the cell's
-    motion), ``T1`` last: a goal the arm reaches by a path it cannot follow is no goal."""
+    motion), ``T1`` last: a goal the arm reaches by a path it cannot follow is no goal.
+    By default at least 8, and one per ``_PATH_STEP`` and per ``_PATH_TURN``."""
     rots = Rotation.from_matrix(np.stack([T0[:3, :3], T1[:3, :3]]))
+    if n is None:
+        turn = float((rots[0].inv() * rots[1]).magnitude())
+        dist = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+        n = max(8, math.ceil(dist / _PATH_STEP), math.ceil(turn / _PATH_TURN))
     f = np.arange(1, n + 1) / n
     R = Slerp([0.0, 1.0], rots)(f).as_matrix()
     out = []
@@ -789,19 +813,29 @@ class NeedleProcedure:
             return float(np.linalg.norm(d - float(d @ v) * v))
         return distance
 
-    def _view(self, T_ref_N: np.ndarray, tools: Sequence[np.ndarray] = ()) -> str:
+    def _view(self, T_ref_N: np.ndarray, tools: Sequence[np.ndarray] = (),
+              incision: bool = False, strict: bool = False) -> str:
         """Why the cameras would not see the needle well at ``T_ref_N`` ("" when they
         would): every camera must see the whole needle ``view_margin_px`` inside the
         image, no more than ``1 - min_visible`` of it behind the grippers at ``tools``
-        (their ``T_ref_T``) and, with an outline, against the tissue surface; the
-        reference view at most ``max_view_angle`` from face-on."""
+        (their ``T_ref_T``), with ``incision``, in the incision line's band the
+        features ignore (``incision_mask_px``), and, with an outline, off the tissue
+        surface; the reference view at most ``max_view_angle`` from face-on. (The
+        hand-off does not ask ``incision``: near the entry the line crosses most
+        views of the needle, and the carried pose holds the parts it hides; the
+        pulled needle's look, which must show the hold by the images alone, does.)
+        ``strict``: with room for a pose a few millimetres and degrees off the one
+        asked about, ``strict_view_angle`` less face-on angle and ``strict_visible``
+        more of the needle in view."""
         s = self.s
         pts = self.needle.points(48) @ T_ref_N[:3, :3].T + T_ref_N[:3, 3]
         facing = abs(float(T_ref_N[:3, 2] @ self._sight(T_ref_N)))
-        if facing < math.cos(s.max_view_angle):
+        max_angle = s.max_view_angle - (s.strict_view_angle if strict else 0.0)
+        min_visible = min(1.0, s.min_visible + (s.strict_visible if strict else 0.0))
+        if facing < math.cos(max_angle):
             return "edge-on to the camera"
         m = s.view_margin_px
-        for cam in self.cams:
+        for cam, masked in zip(self.cams, self._masks, strict=True):
             uv = cam.project_from(cam.T_cam_ref, pts)
             if not (np.all(np.isfinite(uv)) and np.all(uv >= m)
                     and np.all(uv[:, 0] <= cam.width - 1 - m)
@@ -810,11 +844,17 @@ class NeedleProcedure:
             hidden = np.zeros(len(pts), dtype=bool)
             for T in tools:
                 hidden |= self._behind_tool(cam, uv, T)
-            if 1.0 - hidden.mean() < s.min_visible:
+            if 1.0 - hidden.mean() < min_visible:
                 return "hidden by the grippers"
+            if incision:
+                # the features ignore the line's band (a dark line is not the wire)
+                px = np.round(uv).astype(int)
+                hidden |= masked[px[:, 1], px[:, 0]]
+                if 1.0 - hidden.mean() < min_visible:
+                    return "hidden by the incision line"
             if self.outline is not None:
                 hidden |= ~self._backdrop(cam, pts)
-                if 1.0 - hidden.mean() < s.min_visible:
+                if 1.0 - hidden.mean() < min_visible:
                     return "hidden or not against the tissue"
         return ""
 
@@ -1311,6 +1351,21 @@ class NeedleProcedure:
         T0 = self.cell.gripper_pose(arm)
         for k, T in enumerate(pull.G_PT):
             self._move(arm, T, f"pull pose {k + 1} of {len(pull.G_PT)}")
+        # the pulled needle stands square to the tissue, which the cameras look at
+        # nearly face-on: edge-on to them, and often over what lies beyond the tissue;
+        # turned and raised where they see it, the look can show the hold
+        assert self.G_TN is not None
+        shown = self._show_pose(arm, pull.G_CN[-1], self.G_TN)
+        figures: dict[str, Any] = {"show_turn_deg": None}
+        if shown is not None:
+            T_show, turn = shown
+            figures["show_turn_deg"] = round(math.degrees(turn), 1)
+            if turn > 0.0 or not np.allclose(T_show, self.cell.gripper_pose(arm)):
+                try:
+                    self.cell.move(arm, T_show)
+                except Exception as exc:   # stopped short at a reachable pose, needle held
+                    # out of the tissue: the look judges the hold wherever it stopped
+                    figures["show_stopped"] = str(exc)
         # the regrasp's proof: the needle came out with the jaws
         T_N = self._followed(arm, before, T0, "pull", s.pull_tolerance)
         lowest = float(((self.needle.points(64) @ T_N[:3, :3].T + T_N[:3, 3]
@@ -1321,8 +1376,43 @@ class NeedleProcedure:
         self.in_tissue = False
         self._pull = None
         self.tracker.set_occluder(None)
-        return {"turn_deg": round(math.degrees(float(pull.betas[-1])), 1),
-                "lowest_point_mm": round(lowest * 1e3, 2)}
+        figures.update(turn_deg=round(math.degrees(float(pull.betas[-1])), 1),
+                       lowest_point_mm=round(lowest * 1e3, 2))
+        return figures
+
+    def _show_pose(self, arm: str, T_N: np.ndarray, G_TN: np.ndarray
+                   ) -> tuple[np.ndarray, float] | None:
+        """Where ``arm``, holding the pulled needle (at ``T_N``, ``ref``) with ``G_TN``,
+        shows it to the cameras: the needle turned about its centre as little as will
+        do (:data:`_HANDOFF_TURNS`) and raised by one of ``show_heights``, reached along
+        the straight path from where the arm is, the needle ``carry_clearance`` off the
+        tissue all the way. The views (:meth:`_view`, past both grippers) are asked in
+        tiers, the first that any candidate passes deciding: with room to spare
+        (``strict``) and clear of the incision line's band, then clear of the band, then
+        as the hand-off asks (the features ignore the band, and the rest of the arc may
+        still show the hold). Returns the gripper's ``T_ref_T`` and the turn (rad), or
+        ``None`` when no candidate does."""
+        s = self.s
+        here = self.cell.gripper_pose(arm)
+        others = [self.cell.gripper_pose(a) for a in self.arms if a != arm]
+        G_NT = invert(G_TN)
+        moves = []
+        for turn in _HANDOFF_TURNS:
+            for h in s.show_heights:
+                T_s = T_N.copy()
+                T_s[:3, :3] = turn @ T_N[:3, :3]
+                T_s[:3, 3] += h * self.normal
+                T_g = T_s @ G_NT
+                if not self._reach(arm, _path(here, T_g))[0]:
+                    continue
+                if self._lowest(_path(here, T_g, 32), G_TN) < s.carry_clearance:
+                    continue
+                moves.append((T_s, T_g, rotation_angle(turn, np.eye(3))))
+        for strict, incision in ((True, True), (False, True), (False, False)):
+            for T_s, T_g, turn in moves:
+                if not self._view(T_s, [T_g, *others], incision=incision, strict=strict):
+                    return T_g, turn
+        return None
 
     # -- truth ----------------------------------------------------------------------------
     def _check_truth(self, res: StepResult) -> None:

@@ -86,6 +86,11 @@ MIN_INSERTION = 0.030
 MAX_INSERTION = 0.240
 #: Port sites drawn per arm when the ports are selected for the suture.
 PORT_CANDIDATES = 12
+#: Where an arm's port sites are drawn (m): to its side of the pad centre (lateral),
+#: above or below it (vertical, +-), and their distance from the pad centre.
+PORT_LATERAL = (0.040, 0.060)
+PORT_VERTICAL = 0.015
+PORT_DISTANCE = (0.120, 0.150)
 
 #: ``drivable(reach, incision, normal) -> bool``: whether an arm of :class:`ArmReach`
 #: ``reach`` can drive the planned suture across ``incision`` (2, 3) on the surface of
@@ -293,9 +298,9 @@ def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None)
         # pick up and hand off; the other may drive)
         sites = []
         for _ in range(PORT_CANDIDATES if drivable is not None else 1):
-            lateral = side * u(0.040, 0.060)
-            vertical = u(-0.015, 0.015)
-            dist = u(0.120, 0.150)
+            lateral = side * u(*PORT_LATERAL)
+            vertical = u(-PORT_VERTICAL, PORT_VERTICAL)
+            dist = u(*PORT_DISTANCE)
             depth = math.sqrt(max(dist**2 - lateral**2 - vertical**2, 0.0))
             rcm = centre + np.array([lateral, vertical, -depth])
             rcm[2] = min(rcm[2], -0.002)                 # behind the camera's plane

@@ -386,3 +386,24 @@ def test_tracker_without_the_plane_loses_a_driven_needle(driven):
     assert not track.converged
     assert not track.refined.ok and track.refined.support < 0.6
     assert dp > 2e-3, dp
+
+
+def test_the_slide_drifts_only_with_a_motion(driven):
+    """The motion prior (``TrackSettings.slide_drift``): the wire slips along its own arc
+    only when something moves it (a gripper's motion, or the jaws closing: an untrusted
+    look). A trusted look with nothing moved carries the slide's uncertainty unchanged;
+    at the hand-off, where the jaws hide an end, one drift per look had grown it past
+    what a step may move on while the pose stayed 0.3 deg from the truth. The tilt and
+    position drift stay (the arm's and the model's error), an untrusted or a moving
+    look widens the slide by one drift."""
+    tr = copy.deepcopy(driven.tracker)
+    assert tr._belief is not None
+    slide, tilt = (lambda c: (c[2, 2], c[0, 0]))(tr._belief[1])
+    drift = tr.s.slide_drift ** 2
+    tr.predict(np.eye(4))
+    c = tr._belief[1]
+    assert c[2, 2] == pytest.approx(slide) and c[0, 0] == pytest.approx(tilt + tr.s.tilt_drift ** 2)
+    tr.predict(np.eye(4), trusted=False)
+    assert tr._belief[1][2, 2] == pytest.approx(slide + drift)
+    tr.predict(driven.push)
+    assert tr._belief[1][2, 2] == pytest.approx(slide + 2 * drift)

@@ -171,6 +171,10 @@ def test_bad_construction_is_refused():
         NeedleProcedure(cell, info.incision, np.zeros(3))
     with pytest.raises(NeedleError, match="suture_at"):
         ProcedureSettings(suture_at=1.5)
+    with pytest.raises(NeedleError, match="show_heights"):
+        ProcedureSettings(show_heights=(0.0, -0.005))
+    with pytest.raises(NeedleError, match="strict_visible"):
+        ProcedureSettings(strict_visible=-0.1)
 
 
 def test_grasp_hand_off_and_drive_on_a_trial_cell():
@@ -289,8 +293,11 @@ def test_a_regrasp_that_holds_nothing_is_caught_by_the_pull():
     """Issue 7, the regrasp's hold is shown by the pull (no step moves on a hold it has
     not seen): on trial 1 (ports chosen for the suture) the regrasp closes its jaws on
     the tip; if they then let go (as if they had closed on nothing), the pull's look
-    finds the needle where it was, not where the jaws took it, and NP fails with
-    grasp_missed, not done."""
+    does not find the needle where the jaws took it, and NP fails, not done: with
+    grasp_missed where it finds the needle where it was, or lost_track where it does
+    not (since session 18 the empty jaws go on to the pose that would show a held
+    needle to the cameras, and on this trial they then hide part of the needle left
+    in the tissue: the filter's score falls to 0.50, its floor)."""
     cell, proc = _procedure(1, settings=ProcedureSettings(),
                             drivable=port_drives(CT1, ProcedureSettings()))
     for step in ("NG", "NH", "ND", "NR"):
@@ -298,9 +305,36 @@ def test_a_regrasp_that_holds_nothing_is_caught_by_the_pull():
         assert r.ok and r.truth_ok, r
     cell.open(proc.holder)
     np_ = proc.run("NP")
-    assert not np_.ok and np_.cause == "grasp_missed", np_
-    assert "did not follow the jaws" in np_.detail
+    assert not np_.ok and np_.cause in ("grasp_missed", "lost_track"), np_
+    if np_.cause == "grasp_missed":
+        assert "did not follow the jaws" in np_.detail
     assert cell.truth().in_tissue
+
+
+def test_the_pulled_needle_is_turned_to_the_cameras_before_the_look():
+    """Issue 7, the pull (NP) shows the regrasp's hold: on trial 18 (ports chosen for
+    the suture) the pull leaves the needle standing square to the tissue, which the
+    cameras see nearly face-on, so they see the needle 81 deg from face-on and partly
+    over the dark beyond the pad, where the look found half its arc and lost it. NP
+    turns it to where both cameras see it (the planner's view rule) before the look:
+    the look then sees it there (truth), and the needle is out of the tissue in the
+    jaws."""
+    cell, proc = _procedure(18, settings=ProcedureSettings(),
+                            drivable=port_drives(CT1, ProcedureSettings()))
+    for step in ("NG", "NH", "ND", "NR"):
+        r = proc.run(step)
+        assert r.ok and r.truth_ok, r
+    assert proc._pull is not None
+    pulled = proc._pull[0].G_CN[-1]
+    assert proc._view(pulled) == "edge-on to the camera"
+    seen = []
+    followed = proc._followed
+    proc._followed = lambda *a: (seen.append(cell.truth().T_ref_needle), followed(*a))[1]
+    np_ = proc.run("NP")
+    assert np_.ok and np_.truth_ok, np_
+    assert np_.figures["show_turn_deg"] > 0
+    tools = [cell.true_gripper_pose(g) for g in cell.grippers]
+    assert proc._view(seen[0], tools) == ""
 
 
 def test_a_needle_near_the_pads_edge_is_lifted_less():
@@ -319,11 +353,11 @@ def test_a_needle_near_the_pads_edge_is_lifted_less():
 
 def test_a_carry_that_would_sweep_the_needle_through_the_tissue_goes_over_it():
     """Issue 7, the drive enters where planned (the truth's entry is the tip's first
-    crossing of the surface): on trial 7 the straight path from the hand-off to the
+    crossing of the surface): on trial 16 the straight path from the hand-off to the
     drive's approach turns the needle about the jaws and would sweep its tip through the
     tissue away from the planned entry; the approach goes over the tissue instead, and
     the truth's entry and exit are the planned ones."""
-    cell, proc = _procedure(7, settings=ProcedureSettings())
+    cell, proc = _procedure(16, settings=ProcedureSettings())
     for step in ("NG", "NH"):
         assert proc.run(step).ok
     moves = []
