@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Protocol
 
@@ -330,6 +330,20 @@ def _turns(step_deg: float = 30.0, axes: int = 40) -> list[np.ndarray]:
 
 #: The hand-off's candidate turns of the needle from its drive start orientation.
 _HANDOFF_TURNS = _turns()
+
+
+def _turned_and_raised(T_N: np.ndarray, normal: np.ndarray, heights: Sequence[float]
+                       ) -> Iterator[tuple[np.ndarray, float, float]]:
+    """Needle poses near ``T_N`` for a hand-off or a look: turned about the needle's
+    centre by each of :data:`_HANDOFF_TURNS` (the least first) and raised along
+    ``normal`` by each of ``heights`` (m). Items: ``(T_ref_N, turn (rad), height)``."""
+    for turn in _HANDOFF_TURNS:
+        angle = rotation_angle(turn, np.eye(3))
+        for h in heights:
+            T = T_N.copy()
+            T[:3, :3] = turn @ T_N[:3, :3]
+            T[:3, 3] += h * normal
+            yield T, angle, h
 
 
 #: A checked path's spacing (m, rad): the simulated cell's motion increments, so that a
@@ -1021,14 +1035,10 @@ class NeedleProcedure:
         start = self.drive.G_PS @ self.drive.G_SN[0]
         G_NT_B = invert(self.drive_choice.G_TN)
         out = []
-        for turn in _HANDOFF_TURNS:
-            for H in s.handoff_heights:
-                T_h = start.copy()
-                T_h[:3, :3] = turn @ start[:3, :3]
-                T_h[:3, 3] += H * self.normal
-                T_B = T_h @ G_NT_B
-                if self._reach(B, [T_B, _back_off(T_B, s.approach)])[0]:
-                    out.append((T_h, T_B, rotation_angle(turn, np.eye(3)), H))
+        for T_h, turn, H in _turned_and_raised(start, self.normal, s.handoff_heights):
+            T_B = T_h @ G_NT_B
+            if self._reach(B, [T_B, _back_off(T_B, s.approach)])[0]:
+                out.append((T_h, T_B, turn, H))
         return out
 
     def _meeting(self, G_TN_A: np.ndarray, handoffs: Sequence[tuple], T_A0: np.ndarray | None,
@@ -1397,17 +1407,13 @@ class NeedleProcedure:
         others = [self.cell.gripper_pose(a) for a in self.arms if a != arm]
         G_NT = invert(G_TN)
         moves = []
-        for turn in _HANDOFF_TURNS:
-            for h in s.show_heights:
-                T_s = T_N.copy()
-                T_s[:3, :3] = turn @ T_N[:3, :3]
-                T_s[:3, 3] += h * self.normal
-                T_g = T_s @ G_NT
-                if not self._reach(arm, _path(here, T_g))[0]:
-                    continue
-                if self._lowest(_path(here, T_g, 32), G_TN) < s.carry_clearance:
-                    continue
-                moves.append((T_s, T_g, rotation_angle(turn, np.eye(3))))
+        for T_s, turn, _ in _turned_and_raised(T_N, self.normal, s.show_heights):
+            T_g = T_s @ G_NT
+            if not self._reach(arm, _path(here, T_g))[0]:
+                continue
+            if self._lowest(_path(here, T_g, 32), G_TN) < s.carry_clearance:
+                continue
+            moves.append((T_s, T_g, turn))
         for strict, incision in ((True, True), (False, True), (False, False)):
             for T_s, T_g, turn in moves:
                 if not self._view(T_s, [T_g, *others], incision=incision, strict=strict):
