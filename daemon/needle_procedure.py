@@ -400,6 +400,42 @@ def drive_ways(incision: np.ndarray, normal: np.ndarray, geometry: SutureGeometr
     return out
 
 
+def _arc_under(needle: Needle, T_N: np.ndarray, point: np.ndarray, normal: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The arc of ``needle`` at ``T_N`` in 721 points: their angles (rad), their
+    positions (ref, m) and the indices of those under the surface through ``point`` with
+    unit ``normal`` (out of the tissue)."""
+    phis = np.linspace(0.0, needle.arc, 721)
+    pts = needle.point(phis) @ T_N[:3, :3].T + T_N[:3, 3]
+    under = np.nonzero((pts - point) @ normal < 0.0)[0]
+    return phis, pts, under
+
+
+def _tip_part(needle: Needle, T_N: np.ndarray, point: np.ndarray, normal: np.ndarray,
+              s: ProcedureSettings) -> tuple[float, float, float]:
+    """The tip part out of the tissue with the needle at ``T_N`` (surface as in
+    :func:`_arc_under`): the regrasp may hold it from ``phi_lo`` to ``phi_hi`` (rad;
+    empty when ``hi < lo``); and how far the tip stands out along the arc (mm)."""
+    r, arc = needle.radius, needle.arc
+    phis, _, under = _arc_under(needle, T_N, point, normal)
+    cross = phis[under[-1]] if under.size else 0.0
+    return (cross + s.regrasp_exit_margin / r, arc - s.regrasp_tip_margin / r,
+            (arc - cross) * r * 1e3)
+
+
+def _tip_grasps(needle: Needle, T_N: np.ndarray, point: np.ndarray, normal: np.ndarray,
+                s: ProcedureSettings, lo: float, hi: float) -> list[SurfaceGrasp]:
+    """The regrasp's candidates on the tip part ``lo``..``hi`` (rad) of the needle at
+    ``T_N``, the steepest shafts first. The tip part rises steeply out of the exit, and
+    a jaw square to the wire holds the shaft at most (90 deg - the wire's rise) above
+    the surface: the grasps along the whole tip part (nearer the exit the wire leans
+    more, further out it stands higher)."""
+    grasps = [g for phi in np.linspace(lo, hi, s.regrasp_points)
+              for g in surface_grasps(needle, T_N, float(phi), point, normal, s.regrasp)]
+    grasps.sort(key=lambda g: -g.elevation)
+    return grasps
+
+
 def port_drives(needle: Needle, settings: ProcedureSettings | None = None
                 ) -> Callable[[Any, np.ndarray, np.ndarray], bool]:
     """Entry port selection (seed 002's grasp rule comes from its ref. [8], Liu and
@@ -407,8 +443,11 @@ def port_drives(needle: Needle, settings: ProcedureSettings | None = None
     ``drives(reach, incision, normal) -> bool`` of whether an arm whose reach is ``reach``
     (``reach.reachable(T_ref_tool, margin) -> (ok, why)``, as the simulator's
     ``ArmReach``) can drive the planned suture either way with a grasp the plan would
-    choose, for a cell set up before the procedure (the planner's own rule and margin,
-    :meth:`NeedleProcedure._plan`). A suture the settings refuse drives from no port."""
+    choose and then, from the same port, regrasp the tip where the planned drive leaves
+    it and pull the needle out (seed 002's needle driving, its five steps; the driver
+    regrasps first, :meth:`NeedleProcedure._step_nr`), for a cell set up before the
+    procedure (the planner's own rules and margin, :meth:`NeedleProcedure._plan`). A
+    suture the settings refuse drives from no port."""
     s = settings or ProcedureSettings()
     pick = _drive_pick(s)
     try:
@@ -428,12 +467,32 @@ def port_drives(needle: Needle, settings: ProcedureSettings | None = None
                               geometry, s)
         except NeedleError:
             return False
-        for _, _, drive in ways:
+        point = np.mean(np.asarray(incision, float), axis=0)
+        normal = np.asarray(normal, float)
+        for _, G_CS, drive in ways:
             try:
                 select_grasp(needle, drive, pick, reachable=reachable)
-                return True
             except NeedleError:
                 continue
+            if pulls(reachable, G_CS @ drive.G_SN[-1], G_CS, point, normal):
+                return True
+        return False
+
+    def pulls(reachable: Callable[[np.ndarray], bool], T_N: np.ndarray, G_CS: np.ndarray,
+              point: np.ndarray, normal: np.ndarray) -> bool:
+        lo, hi, _ = _tip_part(needle, T_N, point, normal, s)
+        if hi < lo:
+            return False
+        for g in _tip_grasps(needle, T_N, point, normal, s, lo, hi):
+            if not (reachable(g.T_ref_T) and reachable(_back_off(g.T_ref_T, s.approach))):
+                continue
+            try:
+                pull = pull_poses(np.eye(4), G_CS, T_N, g.G_TN, needle, s.pull_poses,
+                                  s.swage_clearance, s.pull_lift)
+            except NeedleError:
+                continue
+            if all(reachable(T) for T in pull.G_PT):
+                return True
         return False
 
     return drives
@@ -1173,12 +1232,8 @@ class NeedleProcedure:
                                      else "as planned" if seen is None else str(seen))}
 
     def _arc_under(self, T_N: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The arc of the needle at ``T_N`` in 721 points: their angles (rad), their
-        positions (ref, m) and the indices of those under the tissue surface."""
-        phis = np.linspace(0.0, self.needle.arc, 721)
-        pts = self.needle.point(phis) @ T_N[:3, :3].T + T_N[:3, 3]
-        under = np.nonzero((pts - self.incision.mean(axis=0)) @ self.normal < 0.0)[0]
-        return phis, pts, under
+        """:func:`_arc_under` on this procedure's tissue surface."""
+        return _arc_under(self.needle, T_N, self.incision.mean(axis=0), self.normal)
 
     def _check_exit(self, T_N: np.ndarray, what: str) -> None:
         """Fail unless the needle tracked at ``T_N`` went in and came out where the drive
@@ -1195,7 +1250,7 @@ class NeedleProcedure:
         the needle's slide along its own circle, which the views fix only at its ends
         (seen near the pad's edge, or edge-on, an end misread by a few pixels moves the
         tip by millimetres); how far the tip went is the regrasp's concern
-        (:meth:`_tip_part`), and the distance of the tracked tip from the plan's end is
+        (:func:`_tip_part`), and the distance of the tracked tip from the plan's end is
         only reported."""
         assert self.tip_plan is not None and self.geometry is not None
         tol = self.s.placement_tolerance
@@ -1268,20 +1323,13 @@ class NeedleProcedure:
         self._back_off_released(B, "regrasp")
         T_N = self._converged("regrasp")
         self._check_exit(T_N, "regrasp")
-        phi_lo, phi_hi, out_mm = self._tip_part(T_N)
+        point = self.incision.mean(axis=0)
+        phi_lo, phi_hi, out_mm = _tip_part(self.needle, T_N, point, self.normal, s)
         if phi_hi < phi_lo:
             raise _refuse("no_grasp", f"regrasp: the tip stands {out_mm:.1f} mm out of the "
                                       f"tissue, too little to grasp")
-        point = self.incision.mean(axis=0)
         assert self.G_CS is not None
-        # the tip part rises steeply out of the exit, and a jaw square to the wire holds
-        # the shaft at most (90 deg - the wire's rise) above the surface: the grasps
-        # along the whole tip part, the steepest shafts first (nearer the exit the wire
-        # leans more, further out it stands higher)
-        grasps = [g for phi in np.linspace(phi_lo, phi_hi, s.regrasp_points)
-                  for g in surface_grasps(self.needle, T_N, float(phi), point, self.normal,
-                                          s.regrasp)]
-        grasps.sort(key=lambda g: -g.elevation)
+        grasps = _tip_grasps(self.needle, T_N, point, self.normal, s, phi_lo, phi_hi)
         order = [B] + [a for a in self.arms if a != B]
         last = ""
         for arm in order:
@@ -1320,17 +1368,6 @@ class NeedleProcedure:
         raise _StepFailed("move_stopped", f"{what}: the released gripper cannot back off "
                                           f"the needle in any direction that clears the "
                                           f"jaws ({why})")
-
-    def _tip_part(self, T_N: np.ndarray) -> tuple[float, float, float]:
-        """The tip part out of the tissue at tracked pose ``T_N``: the grasp may go from
-        ``phi_lo`` to ``phi_hi`` (rad; empty when ``hi < lo``); and how far the tip stands
-        out along the arc (mm)."""
-        s = self.s
-        r, arc = self.needle.radius, self.needle.arc
-        phis, _, under = self._arc_under(T_N)
-        cross = phis[under[-1]] if under.size else 0.0
-        return (cross + s.regrasp_exit_margin / r, arc - s.regrasp_tip_margin / r,
-                (arc - cross) * r * 1e3)
 
     def _regrasp(self, arm: str, g: SurfaceGrasp, pull: Any, out_mm: float
                  ) -> dict[str, Any]:

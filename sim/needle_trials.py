@@ -21,12 +21,15 @@ The layout, in the stereo endoscope's reference frame (the left channel; metres)
   from their RCM (wrist unbent), turned at random about their axis, their jaws and shafts
   clear of the needle in both views;
 - each arm's RCM 40-60 mm to its side of the pad centre, +-15 mm vertically, about
-  120-150 mm from the pad centre and at least 2 mm behind the camera's plane (a port
-  beside the endoscope's). Entry port selection, as in seed 002's ref. [8] (Liu and
-  Cavusoglu, "Needle grasp and entry port selection ..."), when a ``drivable`` check is
-  given: each arm draws 12 port sites there and takes the first from which the planned
-  suture can be driven (the record's ``port``, and ``port_drives`` false when none
-  could: the arm takes its first site, and the trial may fail by reach); reach: the
+  120-150 mm from the pad centre and at least 2 mm behind the camera's plane (the
+  nominal port, beside the endoscope's). Entry port selection, as in seed 002's ref.
+  [8] (Liu and Cavusoglu, "Needle grasp and entry port selection ..."), when a
+  ``drivable`` check is given: each arm draws 12 sites anywhere on its side of the
+  endoscope, 30-90 mm to the side, +-50 mm vertically and 100-160 mm from the pad
+  centre, and takes the first from which the check passes (the procedure's: the suture
+  driven, the tip regrasped and the needle pulled out; the record's ``port``, and
+  ``port_drives`` false when none could: the arm takes its first site, and the trial
+  may fail by reach); reach: the
   dVRK manipulator's insertion, the tip 30-240 mm from the RCM, and the wrist of a da
   Vinci Large Needle Driver (pitch and yaw +-80 deg, :class:`ArmReach`). So the whole
   pad lies within the insertion range of both arms (until session 17 the insertion
@@ -86,11 +89,17 @@ MIN_INSERTION = 0.030
 MAX_INSERTION = 0.240
 #: Port sites drawn per arm when the ports are selected for the suture.
 PORT_CANDIDATES = 12
-#: Where an arm's port sites are drawn (m): to its side of the pad centre (lateral),
-#: above or below it (vertical, +-), and their distance from the pad centre.
+#: Where an arm's port is drawn (m): to its side of the pad centre (lateral), above or
+#: below it (vertical, +-), and its distance from the pad centre; the nominal port beside
+#: the endoscope's, taken as it is when no port is selected.
 PORT_LATERAL = (0.040, 0.060)
 PORT_VERTICAL = 0.015
 PORT_DISTANCE = (0.120, 0.150)
+#: Where the candidate sites are drawn when the ports are selected for the suture (m):
+#: anywhere on the arm's side of the endoscope within these bounds.
+SITE_LATERAL = (0.030, 0.090)
+SITE_VERTICAL = 0.050
+SITE_DISTANCE = (0.100, 0.160)
 
 #: ``drivable(reach, incision, normal) -> bool``: whether an arm of :class:`ArmReach`
 #: ``reach`` can drive the planned suture across ``incision`` (2, 3) on the surface of
@@ -297,10 +306,12 @@ def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None)
         # which the planned suture drives is taken, else the first (the arm may still
         # pick up and hand off; the other may drive)
         sites = []
+        lat, ver, far = ((SITE_LATERAL, SITE_VERTICAL, SITE_DISTANCE) if drivable is not None
+                         else (PORT_LATERAL, PORT_VERTICAL, PORT_DISTANCE))
         for _ in range(PORT_CANDIDATES if drivable is not None else 1):
-            lateral = side * u(*PORT_LATERAL)
-            vertical = u(-PORT_VERTICAL, PORT_VERTICAL)
-            dist = u(*PORT_DISTANCE)
+            lateral = side * u(*lat)
+            vertical = u(-ver, ver)
+            dist = u(*far)
             depth = math.sqrt(max(dist**2 - lateral**2 - vertical**2, 0.0))
             rcm = centre + np.array([lateral, vertical, -depth])
             rcm[2] = min(rcm[2], -0.002)                 # behind the camera's plane
