@@ -126,6 +126,32 @@ def test_ports_are_chosen_so_that_an_arm_drives_the_suture():
                                          info.surface_normal)
 
 
+def test_a_port_that_drives_but_cannot_pull_is_not_taken():
+    """Entry port selection asks for the whole needle driving (seed 002's five steps):
+    from its nominal port, trial 22's right arm can drive the suture (the plan's grasp
+    rule finds a driving grasp it reaches), but no grasp of the tip where that drive
+    leaves it lets the arm regrasp and pull the needle out; ``port_drives`` refuses
+    the port (session 17's check, the drive alone, took such ports, and 13 of 200
+    trials then failed the regrasp for reach)."""
+    from oralnav.control.needle_drive import SutureGeometry
+    from oralnav.control.needle_grasp import select_grasp
+    from oralnav.daemon.needle_procedure import _drive_pick, drive_ways
+
+    cell, info = trial_cell(22)
+    reach = cell.arm_reach("right")
+    geometry = SutureGeometry.for_needle(CT1, FAST.depth)
+    driven = []
+    for _, _, drive in drive_ways(info.incision, info.surface_normal, geometry, FAST):
+        try:
+            select_grasp(CT1, drive, _drive_pick(FAST),
+                         reachable=lambda T: reach.reachable(T, FAST.reach_margin)[0])
+            driven.append(True)
+        except NeedleError:
+            driven.append(False)
+    assert any(driven)
+    assert not port_drives(CT1, FAST)(reach, info.incision, info.surface_normal)
+
+
 def test_a_tracker_that_has_not_converged_refuses_before_moving():
     """Bad input: with the needle as bright as the pad the tracker cannot converge, and NG
     refuses with the tracker's reason; no arm moves."""
