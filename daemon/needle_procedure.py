@@ -1407,7 +1407,7 @@ class NeedleProcedure:
         if shown is not None:
             T_show, turn = shown
             figures["show_turn_deg"] = round(math.degrees(turn), 1)
-            if turn > 0.0 or not np.allclose(T_show, self.cell.gripper_pose(arm)):
+            if not np.allclose(T_show, self.cell.gripper_pose(arm)):   # turned or raised
                 try:
                     self.cell.move(arm, T_show)
                 except Exception as exc:   # stopped short at a reachable pose, needle held

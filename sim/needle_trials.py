@@ -102,9 +102,9 @@ SITE_VERTICAL = 0.050
 SITE_DISTANCE = (0.100, 0.160)
 
 #: ``drivable(reach, incision, normal) -> bool``: whether an arm of :class:`ArmReach`
-#: ``reach`` can drive the planned suture across ``incision`` (2, 3) on the surface of
-#: ``normal`` (3,), reference frame (m); ``oralnav.daemon.needle_procedure.port_drives``
-#: makes the procedure's.
+#: ``reach`` can carry out the planned suture across ``incision`` (2, 3) on the surface
+#: of ``normal`` (3,), reference frame (m); ``oralnav.daemon.needle_procedure.port_drives``
+#: makes the procedure's (the drive, then the regrasp of the tip and the pull).
 PortCheck = Callable[[ArmReach, np.ndarray, np.ndarray], bool]
 
 
@@ -302,9 +302,9 @@ def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None)
     cam = rig[rig.reference]
     grippers, reach, arms = [], {}, {}
     for name, side in (("left", -1.0), ("right", 1.0)):
-        # candidate port sites, all drawn (a fixed share of the stream); the first from
-        # which the planned suture drives is taken, else the first (the arm may still
-        # pick up and hand off; the other may drive)
+        # candidate port sites, all drawn (a fixed share of the stream); the first the
+        # check passes is taken, else the first (the arm may still pick up and hand
+        # off; the other may drive)
         sites = []
         lat, ver, far = ((SITE_LATERAL, SITE_VERTICAL, SITE_DISTANCE) if drivable is not None
                          else (PORT_LATERAL, PORT_VERTICAL, PORT_DISTANCE))
