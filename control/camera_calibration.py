@@ -32,6 +32,16 @@ outlier is out. The rounds stop when the set of outliers no longer changes (at m
 ``max_rounds`` fits). The worst views are rejected first, and the accepted set never
 shrinks below ``min_views``.
 
+A view whose corner ids are wrong (a misread marker, a permuted list) can wreck the first
+fit of a single camera so thoroughly, through free distortion coefficients, that every
+view comes out tens to hundreds of px off and the rule above can no longer tell which one
+is to blame; where that happens depends on the solver's rounding (the thread count, the
+CPU's vector unit). Before the first fit each view's own plane-to-image homography is
+therefore fitted, and the views whose RMS residual breaks the same rule (a few px for good
+views under the endoscope's distortion, hundreds for permuted ids) sit out the first
+round. They are sorted against that fit like any other view, so a good view the screen
+suspected comes back in the next round.
+
 Degenerate views. A focal length cannot be told apart from distance when every view shows
 the board at the same orientation. The spread of the board normals in the camera frame
 (largest angle between two views' normals) must reach ``min_normal_spread_deg``
@@ -234,6 +244,26 @@ def _homography_normals(views: Sequence[_View], K: np.ndarray) -> np.ndarray:
         n = np.cross(a, b)
         out.append(n / np.linalg.norm(n))
     return np.asarray(out).reshape(-1, 3)
+
+
+def _homography_screen(views: Sequence[_View], k: float, floor_px: float) -> list[int]:
+    """Indices of views whose corners no plane-to-image homography fits (module docstring).
+
+    The RMS residual (px) of each view's own least-squares homography is large for every
+    view under strong distortion (several px at the image corners), but an order of
+    magnitude larger again for a view whose corner ids are wrong; the outlier rule on these
+    residuals picks out such a view before it can take part in the first fit.
+    """
+    res: dict[int, float] = {}
+    for v in views:
+        H, _ = cv2.findHomography(v.obj[:, :2], v.px, 0)
+        if H is None:
+            res[v.index] = np.inf
+            continue
+        q = cv2.perspectiveTransform(v.obj[None, :, :2].astype(float), H)[0]
+        res[v.index] = _rms(q - v.px)
+    limit = _limit(list(res.values()), k, floor_px)
+    return sorted(i for i, e in res.items() if e > limit)
 
 
 def _degenerate_msg(spread: float, need: float, n: int) -> str:
@@ -467,7 +497,8 @@ class _Robust:
 
 def _robust_fit(indices: Sequence[int], fit: Callable[[list[int]], Any],
                 errors: Callable[[Any, list[int]], dict[int, float]], *, reject: bool,
-                min_views: int, k: float, floor_px: float, max_rounds: int) -> _Robust:
+                min_views: int, k: float, floor_px: float, max_rounds: int,
+                first_out: Sequence[int] = ()) -> _Robust:
     """The outlier loop of the module docstring.
 
     ``fit(active)`` calibrates on the active views, from scratch (a previous fit may be
@@ -475,9 +506,10 @@ def _robust_fit(indices: Sequence[int], fit: Callable[[list[int]], Any],
     view's RMS error under a fit, the pose of a view left out solved alone (``inf`` when
     it cannot be). Each round sorts every view afresh against the limit set by the views
     fitted, so a good view rejected while a gross outlier still skewed the fit comes back
-    once the outlier is out.
+    once the outlier is out. ``first_out`` are views left out of the first fit only (a
+    screen's suspects): they are sorted against that fit like every other view.
     """
-    rejected: list[int] = []
+    rejected = sorted(first_out)[:max(0, len(indices) - min_views)] if reject else []
     rounds = 0
     while True:
         rounds += 1
@@ -632,7 +664,8 @@ def calibrate_camera(views: Sequence[ViewLike], board_field: MarkerField,
 
     rob = _robust_fit(sorted(by_index), fit_views, view_errors, reject=reject_outliers,
                       min_views=min_views, k=outlier_k, floor_px=outlier_floor_px,
-                      max_rounds=max_rounds)
+                      max_rounds=max_rounds,
+                      first_out=_homography_screen(usable, outlier_k, outlier_floor_px))
     fit, poses = rob.state
     order = rob.active
     spread = _normal_spread_deg(np.array([poses[i][:3, 2] for i in order]))

@@ -21,6 +21,9 @@ from oralnav.control.camera import CameraModel
 from oralnav.control.camera_calibration import (
     MODELS,
     CalibrationError,
+    _homography_screen,
+    _parse_views,
+    _robust_fit,
     calibrate_camera,
     calibrate_stereo,
     image_coverage,
@@ -208,6 +211,40 @@ def test_corrupted_view_is_rejected_and_targets_still_met(endo_views):
     cal = calibrate_camera(moved, endo_views.board, true.size, model="rational",
                            reject_outliers=False)
     assert cal.rejected == () and cal.rms > 0.3
+
+
+def test_homography_screen_flags_permuted_ids_and_no_good_view(endo_views):
+    """Outlier views, first fit: the homography screen names a view whose corner ids are
+    permuted (hundreds of px off any homography) and none of the 30 good endoscope views,
+    whose residuals under the rational distortion stay at a few px."""
+    views = list(endo_views.views["endoscope"])
+    size = ENDOSCOPE["endoscope"].size
+    good, _ = _parse_views(views, endo_views.board, size, 4, "")
+    assert _homography_screen(good, 4.0, 0.25) == []
+    v = views[7]
+    views[7] = FieldCorners(np.random.default_rng(5).permutation(v.ids), v.px)
+    bad, _ = _parse_views(views, endo_views.board, size, 4, "")
+    assert _homography_screen(bad, 4.0, 0.25) == [7]
+
+
+def test_a_view_wrongly_screened_comes_back_and_a_wrecking_view_stays_out():
+    """Outlier views, the loop: a fit that every view's error blows up in while view 3 is
+    fitted (as a permuted view wrecks the distortion) rejects nothing on its own, the
+    screen's suspects sit out the first fit only (good view 1 comes back) and view 3 is
+    rejected."""
+    def fit(active):
+        return list(active)
+
+    def errors(active, idx):
+        rng = np.random.default_rng(len(active))
+        if 3 in active:     # every view 10-2000 px off, view 3 not the worst
+            return {i: 10.0 + 2000.0 * rng.random() for i in idx}
+        return {i: (5.0 if i == 3 else 0.05) * (1.0 + 0.2 * rng.random()) for i in idx}
+
+    kw = dict(reject=True, min_views=3, k=4.0, floor_px=0.25, max_rounds=5)
+    assert _robust_fit(range(10), fit, errors, **kw).rejected == []
+    rob = _robust_fit(range(10), fit, errors, first_out=[1, 3], **kw)
+    assert rob.rejected == [3] and 1 in rob.active
 
 
 def test_stereo_outlier_view_is_rejected(stereo_views, stereo_cals):
