@@ -84,12 +84,13 @@ def first_failure(results: Sequence[Any]) -> tuple[dict[str, bool | None], dict 
 
 def run_trial(seed: int) -> dict[str, Any]:
     """One trial: the procedure on ``trial_cell(seed)``; its record (JSON-able)."""
-    from oralnav.daemon.needle_procedure import NeedleProcedure, port_drives
+    from oralnav.daemon.needle_procedure import NeedleProcedure, port_drives, port_pair
     from oralnav.sim.needle_trials import CT1, trial_cell
 
     t0 = time.perf_counter()
-    # the cell is set up for the suture: its ports chosen with the procedure's own rule
-    cell, info = trial_cell(seed, drivable=port_drives(CT1))
+    # the cell is set up for the suture: its ports chosen together with the procedure's
+    # own rules (one arm drives and pulls, the other picks up and hands over)
+    cell, info = trial_cell(seed, drivable=port_drives(CT1), workable=port_pair(CT1))
     proc = NeedleProcedure(cell, info.incision, info.surface_normal,
                            surface_outline=info.surface_outline)
     results = proc.run_all()

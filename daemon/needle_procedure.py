@@ -82,7 +82,8 @@ from oralnav.control.needle_tracker import (
 )
 from oralnav.safety.errors import StateError
 
-__all__ = ["STEPS", "NeedleCellPort", "NeedleProcedure", "ProcedureSettings", "StepResult"]
+__all__ = ["STEPS", "NeedleCellPort", "NeedleProcedure", "ProcedureSettings", "StepResult",
+           "ViewRule", "port_drives", "port_pair"]
 
 #: The steps in their order (seed 002 §IV.B, Table I).
 STEPS = ("NG", "NH", "ND", "NR", "NP")
@@ -105,6 +106,8 @@ class NeedleCellPort(Protocol):
     def gripper_pose(self, name: str) -> np.ndarray: ...
     def reachable(self, name: str, T_ref_tool: np.ndarray, margin: float = 0.0
                   ) -> tuple[bool, str]: ...
+    def reachable_all(self, name: str, T_ref_tool: np.ndarray, margin: float = 0.0
+                      ) -> np.ndarray: ...
     def move(self, name: str, T_ref_tool_reported: np.ndarray) -> None: ...
     def close(self, name: str) -> bool: ...
     def open(self, name: str) -> None: ...
@@ -134,7 +137,13 @@ class ProcedureSettings:
     tissue a held needle stays while carried; where the straight path would take it
     lower it goes over, raised by the first of ``carry_rises`` that keeps it clear.
     Hand-off: ``handoff_heights`` (the needle raised this much above its drive start pose,
-    and turned about its centre as little as will do);
+    and turned about its centre as little as will do; and moved by each of
+    ``handoff_shifts`` toward where the reference camera looks on the tissue, at most
+    all the way: raised and turned where it starts the drive, near the incision, the
+    needle is often out of view or edge-on); ``handoff_meetings``: the pick-up
+    takes a grasp with at least this many hand-off poses both arms reach and both
+    cameras see (else the one with the most), so that the grasp the jaws actually make,
+    a few tenths of a millimetre and a few degrees off the planned one, still has one;
     ``separation`` the least arc length between the two grasps; ``view_margin_px`` how far
     inside both images the needle must be; ``min_visible`` the share of the needle no
     gripper may hide in either view, the instruments modelled as jaws (a cylinder of
@@ -176,6 +185,8 @@ class ProcedureSettings:
     hold_check: float = 0.003
     hold_tolerance: float = 0.001
     handoff_heights: tuple[float, ...] = (0.015, 0.010, 0.020, 0.025)
+    handoff_shifts: tuple[float, ...] = (0.0, 0.010, 0.020)
+    handoff_meetings: int = 3
     separation: float = 0.006
     view_margin_px: float = 15.0
     min_visible: float = 0.75
@@ -244,6 +255,13 @@ class ProcedureSettings:
                               "updates >= 1")
         if not self.handoff_heights:
             raise NeedleError("needle procedure: handoff_heights needs a value")
+        if not self.handoff_shifts or not all(math.isfinite(d) and d >= 0
+                                              for d in self.handoff_shifts):
+            raise NeedleError(f"needle procedure: handoff_shifts needs values >= 0 (m), got "
+                              f"{self.handoff_shifts!r}")
+        if self.handoff_meetings < 1:
+            raise NeedleError(f"needle procedure: handoff_meetings must be >= 1, got "
+                              f"{self.handoff_meetings}")
         if not self.show_heights or not all(math.isfinite(h) and h >= 0
                                             for h in self.show_heights):
             raise NeedleError(f"needle procedure: show_heights needs values >= 0, got "
@@ -436,6 +454,93 @@ def _tip_grasps(needle: Needle, T_N: np.ndarray, point: np.ndarray, normal: np.n
     return grasps
 
 
+def _pulls(needle: Needle, s: ProcedureSettings, reachable: Callable[[np.ndarray], bool],
+           T_N: np.ndarray, G_CS: np.ndarray, point: np.ndarray, normal: np.ndarray) -> bool:
+    """Whether an arm that reaches a pose when ``reachable(T_ref_T)`` can regrasp the tip
+    of the needle standing at ``T_N`` in the tissue of frame ``G_CS`` (surface through
+    ``point`` with ``normal``) and pull it out along the planned pull."""
+    lo, hi, _ = _tip_part(needle, T_N, point, normal, s)
+    if hi < lo:
+        return False
+    for g in _tip_grasps(needle, T_N, point, normal, s, lo, hi):
+        if not (reachable(g.T_ref_T) and reachable(_back_off(g.T_ref_T, s.approach))):
+            continue
+        try:
+            pull = pull_poses(np.eye(4), G_CS, T_N, g.G_TN, needle, s.pull_poses,
+                              s.swage_clearance, s.pull_lift)
+        except NeedleError:
+            continue
+        if all(reachable(T) for T in pull.G_PT):
+            return True
+    return False
+
+
+def _driver_choice(ways: Sequence[tuple[str, np.ndarray, Drive]],
+                   choose: Mapping[str, Callable[[int], GraspChoice]]
+                   ) -> tuple[tuple[str, np.ndarray, Drive], str, GraspChoice]:
+    """The plan's driver: of the first of ``ways`` that some arm can drive
+    (``choose[arm](k)``: its driving grasp for ``ways[k]``, :func:`select_grasp`'s, or
+    :class:`NeedleError`), the arm whose grasp scores best. ``(way item, arm, grasp)``;
+    :class:`NeedleError` naming every arm's refusal when none drives either way."""
+    why: dict[str, str] = {}
+    for k, chosen in enumerate(ways):
+        options = []
+        for arm, pick in choose.items():
+            try:
+                choice = pick(k)
+            except NeedleError as exc:
+                why[f"{arm} ({chosen[0]})"] = str(exc)
+                continue
+            options.append((choice.score, arm, choice))
+        if options:
+            _, arm, choice = max(options, key=lambda o: o[0])
+            return chosen, arm, choice
+    raise NeedleError("no arm can drive this suture either way: "
+                      + "; ".join(f"{a}: {w}" for a, w in why.items()))
+
+
+def _pickup_phis(needle: Needle, s: ProcedureSettings, phi_B: float) -> np.ndarray:
+    """The pick-up grasp's candidate points (rad along the arc) in the grasp band, clear
+    of the driving grasp at ``phi_B`` by ``separation + grasp_margin``: the hand-off
+    puts both jaws on the needle. Empty when the band leaves no room."""
+    lo, hi = grasp_band(needle, s.drive_grasp)
+    gap = (s.separation + s.grasp_margin) / needle.radius
+    free = [(max(lo, phi_B + gap), hi), (lo, min(hi, phi_B - gap))]
+    return np.concatenate([np.linspace(a, b, 7) for a, b in free if b >= a] or [[]])
+
+
+def _handoff_poses(drive: Drive, G_TN_B: np.ndarray, normal: np.ndarray, s: ProcedureSettings,
+                   reach_all: Callable[[np.ndarray], np.ndarray], toward: np.ndarray
+                   ) -> list[tuple[np.ndarray, np.ndarray, float, float]]:
+    """Needle poses for the hand-off where the driver, gripping with ``G_TN_B``, reaches
+    its driving grasp and its approach (``reach_all(T (N, 4, 4)) -> (N,) bool``): the
+    drive's start pose moved by each of ``handoff_shifts`` in the tissue plane toward
+    ``toward`` (3,; no further than it), raised ``handoff_heights`` above the tissue and
+    turned about the needle's centre, the least shift, then the least turn first.
+    Items: ``(T_ref_N, driver's T_ref_T, turn (rad), height (m))``."""
+    start = drive.G_PS @ drive.G_SN[0]
+    d = toward - start[:3, 3]
+    d -= float(d @ normal) * normal
+    far = float(np.linalg.norm(d))
+    items: list[tuple[np.ndarray, float, float]] = []
+    done: set[float] = set()
+    for shift in s.handoff_shifts:
+        shift = min(shift, far)
+        if shift in done:
+            continue
+        done.add(shift)
+        moved = start.copy()
+        if shift > 0:
+            moved[:3, 3] += shift / far * d
+        items += _turned_and_raised(moved, normal, s.handoff_heights)
+    T_B = np.stack([T for T, _, _ in items]) @ invert(G_TN_B)
+    back = T_B.copy()
+    back[:, :3, 3] -= s.approach * T_B[:, :3, 2]      # _back_off, on them all
+    ok = reach_all(T_B)
+    ok[ok] &= reach_all(back[ok])
+    return [(T_h, T_B[k], turn, H) for k, (T_h, turn, H) in enumerate(items) if ok[k]]
+
+
 def port_drives(needle: Needle, settings: ProcedureSettings | None = None
                 ) -> Callable[[Any, np.ndarray, np.ndarray], bool]:
     """Entry port selection (seed 002's grasp rule comes from its ref. [8], Liu and
@@ -474,28 +579,235 @@ def port_drives(needle: Needle, settings: ProcedureSettings | None = None
                 select_grasp(needle, drive, pick, reachable=reachable)
             except NeedleError:
                 continue
-            if pulls(reachable, G_CS @ drive.G_SN[-1], G_CS, point, normal):
-                return True
-        return False
-
-    def pulls(reachable: Callable[[np.ndarray], bool], T_N: np.ndarray, G_CS: np.ndarray,
-              point: np.ndarray, normal: np.ndarray) -> bool:
-        lo, hi, _ = _tip_part(needle, T_N, point, normal, s)
-        if hi < lo:
-            return False
-        for g in _tip_grasps(needle, T_N, point, normal, s, lo, hi):
-            if not (reachable(g.T_ref_T) and reachable(_back_off(g.T_ref_T, s.approach))):
-                continue
-            try:
-                pull = pull_poses(np.eye(4), G_CS, T_N, g.G_TN, needle, s.pull_poses,
-                                  s.swage_clearance, s.pull_lift)
-            except NeedleError:
-                continue
-            if all(reachable(T) for T in pull.G_PT):
+            if _pulls(needle, s, reachable, G_CS @ drive.G_SN[-1], G_CS, point, normal):
                 return True
         return False
 
     return drives
+
+
+def port_pair(needle: Needle, settings: ProcedureSettings | None = None
+              ) -> Callable[..., bool]:
+    """Entry port selection for the pair of arms: a check ``workable(reaches, incision,
+    normal, T_ref_needle, rig, outline) -> bool`` of whether, with each arm ``name`` at
+    the port of ``reaches[name]`` (as :func:`port_drives`'s ``reach``, with
+    ``reachable_all(T (N, 4, 4), margin) -> (N,) bool`` too), the plan's driver
+    (:meth:`NeedleProcedure._plan`) drives the suture and pulls the needle out, and the
+    other arm picks up the needle lying at ``T_ref_needle`` (reference frame, m) with a
+    grasp the pick-up would make (NG: clear of the driving grasp, reached with its
+    approach and its lift, the lifted needle seen) that can hold the needle at
+    ``handoff_meetings`` of the hand-off poses the driver reaches, the cameras of ``rig``
+    seeing the needle there past both grippers (NH; the tissue's ``outline`` (k, 3) as
+    :class:`ViewRule`'s, or ``None``).
+
+    A trial asks about many pairs of a few sites each: what one arm's site decides (its
+    driving grasps, its pull, the hand-off poses it reaches and the cameras see) is
+    kept for the scene last asked about."""
+    s = settings or ProcedureSettings()
+    pick = _drive_pick(s)
+    m = s.reach_margin
+    try:
+        geometry = SutureGeometry.for_needle(needle, s.depth)
+    except NeedleError:
+        geometry = None
+    memo: dict[Any, Any] = {}
+
+    def workable(reaches: Mapping[str, Any], incision: np.ndarray, normal: np.ndarray,
+                 T_ref_needle: np.ndarray, rig: Rig, outline: np.ndarray | None = None
+                 ) -> bool:
+        if geometry is None or len(reaches) != 2:
+            return False
+        incision = np.asarray(incision, float)
+        normal = np.asarray(normal, float) / np.linalg.norm(normal)
+        T_ref_needle = np.asarray(T_ref_needle, float)
+        scene = (incision.tobytes(), normal.tobytes(), T_ref_needle.tobytes(), id(rig),
+                 None if outline is None else np.asarray(outline).tobytes())
+        if memo.get("scene") != scene:
+            memo.clear()
+            memo["scene"] = scene
+            try:
+                memo["ways"] = drive_ways(incision, normal, geometry, s)
+            except NeedleError:
+                memo["ways"] = None
+            memo["views"] = ViewRule([rig[c] for c in rig.names], needle, s, normal, outline)
+        ways, views = memo["ways"], memo["views"]
+        if ways is None:
+            return False
+        point = incision.mean(axis=0)
+        one = {a: (lambda T, r=r: bool(r.reachable(T, m)[0])) for a, r in reaches.items()}
+
+        def site(a: str) -> bytes:
+            return reaches[a].rcm.tobytes()
+
+        def grasp(a: str, k: int) -> GraspChoice:
+            key = ("grasp", site(a), k)
+            if key not in memo:
+                try:
+                    memo[key] = select_grasp(needle, ways[k][2], pick, reachable=one[a])
+                except NeedleError as exc:
+                    memo[key] = exc
+            if isinstance(memo[key], NeedleError):
+                raise memo[key]
+            return memo[key]
+
+        try:
+            way, B, choice = _driver_choice(ways, {a: (lambda k, a=a: grasp(a, k))
+                                                   for a in reaches})
+        except NeedleError:
+            return False
+        _, G_CS, drive = way
+        key = ("driver", site(B), way[0])
+        if key not in memo:
+            # the driver's side: it pulls, and the hand-off poses it reaches that the
+            # cameras see past its own gripper
+            meet: list[tuple] = []
+            if _pulls(needle, s, one[B], G_CS @ drive.G_SN[-1], G_CS, point, normal):
+                meet = [item for item in _handoff_poses(
+                    drive, choice.G_TN, normal, s, lambda T: reaches[B].reachable_all(T, m),
+                    views.aim(point)) if not views.why_not(item[0], [item[1]])]
+            memo[key] = meet
+        meet = memo[key]
+        if not meet:
+            return False
+        T_h = np.stack([item[0] for item in meet])
+        A = next(a for a in reaches if a != B)
+        lifts = [_translation(h * normal) for h in sorted({s.lift, min(s.lift, s.lift_low)})]
+        for phi in _pickup_phis(needle, s, choice.phi):
+            for g in surface_grasps(needle, T_ref_needle, float(phi), point, normal,
+                                    s.pickup_grasp):
+                if not (one[A](g.T_ref_T) and one[A](_back_off(g.T_ref_T, s.approach))
+                        and any(one[A](up @ g.T_ref_T) and not views.why_not(
+                            up @ T_ref_needle, [up @ g.T_ref_T]) for up in lifts)):
+                    continue
+                T_A = T_h @ invert(g.G_TN)
+                found = 0
+                for k in np.nonzero(reaches[A].reachable_all(T_A, m))[0]:
+                    if not views.why_not(T_h[k], [meet[k][1], T_A[k]]):
+                        found += 1
+                        if found >= s.handoff_meetings:
+                            return True
+        return False
+
+    return workable
+
+
+@dataclass(frozen=True, eq=False)
+class ViewRule:
+    """Whether the cameras ``cams`` (the reference camera first) would see ``needle`` well
+    at a pose: the planner's view rule (the ``view_*``, ``*_visible`` and tool settings
+    of ``s``), for the procedure and for port selection alike. ``normal`` (3,): the
+    tissue's unit normal; ``outline`` (k, 3): its extent (reference frame, m; ``None``:
+    not asked); ``masks``: per camera, the incision line's band the features ignore
+    (``None``: not asked)."""
+
+    cams: Sequence[CameraModel]
+    needle: Needle
+    s: ProcedureSettings
+    normal: np.ndarray
+    outline: np.ndarray | None = None
+    masks: Sequence[np.ndarray] | None = None
+
+    def sight(self, T_ref_N: np.ndarray) -> np.ndarray:
+        """The reference camera's line of sight to the needle's centre at ``T_ref_N``
+        (unit, reference frame): the views measure depth along it to about a
+        millimetre, across it to a tenth."""
+        v = T_ref_N[:3, 3] - self.cams[0].T_ref_cam[:3, 3]
+        return v / np.linalg.norm(v)
+
+    def aim(self, point: np.ndarray) -> np.ndarray:
+        """Where the reference camera's optical axis meets the tissue plane through
+        ``point`` (3,, reference frame, m): the middle of its view of the tissue; ``point``
+        itself when the axis runs along the plane."""
+        o, z = self.cams[0].T_ref_cam[:3, 3], self.cams[0].T_ref_cam[:3, 2]
+        den = float(z @ self.normal)
+        if abs(den) < 1e-9:
+            return np.asarray(point, float)
+        return o + float((point - o) @ self.normal) / den * z
+
+    def why_not(self, T_ref_N: np.ndarray, tools: Sequence[np.ndarray] = (),
+                incision: bool = False, strict: bool = False) -> str:
+        """Why the cameras would not see the needle well at ``T_ref_N`` ("" when they
+        would): every camera must see the whole needle ``view_margin_px`` inside the
+        image, no more than ``1 - min_visible`` of it behind the grippers at ``tools``
+        (their ``T_ref_T``), with ``incision``, in the incision line's band the
+        features ignore (``incision_mask_px``), and, with an outline, off the tissue
+        surface; the reference view at most ``max_view_angle`` from face-on. (The
+        hand-off does not ask ``incision``: near the entry the line crosses most
+        views of the needle, and the carried pose holds the parts it hides; the
+        pulled needle's look, which must show the hold by the images alone, does.)
+        ``strict``: with room for a pose a few millimetres and degrees off the one
+        asked about, ``strict_view_angle`` less face-on angle and ``strict_visible``
+        more of the needle in view."""
+        s = self.s
+        pts = self.needle.points(48) @ T_ref_N[:3, :3].T + T_ref_N[:3, 3]
+        masks = self.masks if self.masks is not None else [None] * len(self.cams)
+        facing = abs(float(T_ref_N[:3, 2] @ self.sight(T_ref_N)))
+        max_angle = s.max_view_angle - (s.strict_view_angle if strict else 0.0)
+        min_visible = min(1.0, s.min_visible + (s.strict_visible if strict else 0.0))
+        if facing < math.cos(max_angle):
+            return "edge-on to the camera"
+        m = s.view_margin_px
+        for cam, masked in zip(self.cams, masks, strict=True):
+            uv = cam.project_from(cam.T_cam_ref, pts)
+            if not (np.all(np.isfinite(uv)) and np.all(uv >= m)
+                    and np.all(uv[:, 0] <= cam.width - 1 - m)
+                    and np.all(uv[:, 1] <= cam.height - 1 - m)):
+                return "out of view"
+            hidden = np.zeros(len(pts), dtype=bool)
+            for T in tools:
+                hidden |= self.behind_tool(cam, uv, T)
+            if 1.0 - hidden.mean() < min_visible:
+                return "hidden by the grippers"
+            if incision and masked is not None:
+                # the features ignore the line's band (a dark line is not the wire)
+                px = np.round(uv).astype(int)
+                hidden |= masked[px[:, 1], px[:, 0]]
+                if 1.0 - hidden.mean() < min_visible:
+                    return "hidden by the incision line"
+            if self.outline is not None:
+                hidden |= ~self.backdrop(cam, pts)
+                if 1.0 - hidden.mean() < min_visible:
+                    return "hidden or not against the tissue"
+        return ""
+
+    def tool_parts(self, T_ref_T: np.ndarray) -> tuple[ToolCylinder, ToolCylinder]:
+        """The gripper at ``T_ref_T`` as the parts that may hide the needle: its jaws (a
+        cylinder of ``jaw_radius`` over ``jaw_length`` behind the tip) and its shaft
+        (``tool_radius``, on to ``tool_length`` behind the tip)."""
+        s = self.s
+        tip, z = T_ref_T[:3, 3], T_ref_T[:3, 2]
+        heel = tip - s.jaw_length * z
+        return (ToolCylinder(tip, heel, s.jaw_radius),
+                ToolCylinder(heel, tip - s.tool_length * z, s.tool_radius))
+
+    def behind_tool(self, cam: CameraModel, uv: np.ndarray, T_ref_T: np.ndarray
+                    ) -> np.ndarray:
+        """Which image points ``uv`` (k, 2) the gripper at ``T_ref_T`` may hide. Depth is
+        ignored, so a point in front of the tool counts as hidden too: the estimate errs
+        toward refusing a view."""
+        return hidden_by(self.tool_parts(T_ref_T), cam, uv)
+
+    def backdrop(self, cam: CameraModel, pts: np.ndarray) -> np.ndarray:
+        """Which of ``pts`` (k, 3, ref) ``cam`` sees against the tissue: the ray through
+        the point meets the tissue plane beyond it, inside the outline (a convex polygon
+        in the plane)."""
+        assert self.outline is not None
+        o = cam.T_ref_cam[:3, 3]
+        n, p0 = self.normal, self.outline[0]
+        d = pts - o
+        den = d @ n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = ((p0 - o) @ n) / den
+        beyond = np.abs(den) > 1e-12
+        beyond &= lam > 1.0             # the surface must lie beyond the needle
+        hit = o + np.where(beyond, lam, 0.0)[:, None] * d
+        edges = np.roll(self.outline, -1, axis=0) - self.outline
+        # the polygon's winding about the normal: inside is on the same side of every edge
+        sign = 1.0 if float(np.cross(edges[0], edges[1]) @ n) >= 0 else -1.0
+        inside = beyond
+        for a, e in zip(self.outline, edges, strict=True):
+            inside &= sign * (np.cross(e, hit - a) @ n) > 0
+        return inside
 
 
 class NeedleProcedure:
@@ -563,6 +875,8 @@ class NeedleProcedure:
                 a, b = (tuple(int(v) for v in np.round(p)) for p in uv)
                 cv2.line(m, a, b, 1, int(s.incision_mask_px))
             self._masks.append(m.astype(bool))
+        self.views = ViewRule(self.cams, self.needle, s, self.normal, self.outline,
+                              self._masks)
         z_ref = float(mid[2])
         self._depth_range = (max(z_ref - s.depth_window, 0.01), z_ref + s.depth_window)
         # state
@@ -872,8 +1186,7 @@ class NeedleProcedure:
         """The reference camera's line of sight to the needle's centre at ``T_ref_N``
         (unit, reference frame): the views measure depth along it to about a
         millimetre, across it to a tenth."""
-        v = T_ref_N[:3, 3] - self.cams[0].T_ref_cam[:3, 3]
-        return v / np.linalg.norm(v)
+        return self.views.sight(T_ref_N)
 
     def _across_sight(self, T_ref_N: np.ndarray) -> Callable[[np.ndarray, np.ndarray], float]:
         """A distance (m) between two needle poses: their centres' distance square to
@@ -888,87 +1201,12 @@ class NeedleProcedure:
 
     def _view(self, T_ref_N: np.ndarray, tools: Sequence[np.ndarray] = (),
               incision: bool = False, strict: bool = False) -> str:
-        """Why the cameras would not see the needle well at ``T_ref_N`` ("" when they
-        would): every camera must see the whole needle ``view_margin_px`` inside the
-        image, no more than ``1 - min_visible`` of it behind the grippers at ``tools``
-        (their ``T_ref_T``), with ``incision``, in the incision line's band the
-        features ignore (``incision_mask_px``), and, with an outline, off the tissue
-        surface; the reference view at most ``max_view_angle`` from face-on. (The
-        hand-off does not ask ``incision``: near the entry the line crosses most
-        views of the needle, and the carried pose holds the parts it hides; the
-        pulled needle's look, which must show the hold by the images alone, does.)
-        ``strict``: with room for a pose a few millimetres and degrees off the one
-        asked about, ``strict_view_angle`` less face-on angle and ``strict_visible``
-        more of the needle in view."""
-        s = self.s
-        pts = self.needle.points(48) @ T_ref_N[:3, :3].T + T_ref_N[:3, 3]
-        facing = abs(float(T_ref_N[:3, 2] @ self._sight(T_ref_N)))
-        max_angle = s.max_view_angle - (s.strict_view_angle if strict else 0.0)
-        min_visible = min(1.0, s.min_visible + (s.strict_visible if strict else 0.0))
-        if facing < math.cos(max_angle):
-            return "edge-on to the camera"
-        m = s.view_margin_px
-        for cam, masked in zip(self.cams, self._masks, strict=True):
-            uv = cam.project_from(cam.T_cam_ref, pts)
-            if not (np.all(np.isfinite(uv)) and np.all(uv >= m)
-                    and np.all(uv[:, 0] <= cam.width - 1 - m)
-                    and np.all(uv[:, 1] <= cam.height - 1 - m)):
-                return "out of view"
-            hidden = np.zeros(len(pts), dtype=bool)
-            for T in tools:
-                hidden |= self._behind_tool(cam, uv, T)
-            if 1.0 - hidden.mean() < min_visible:
-                return "hidden by the grippers"
-            if incision:
-                # the features ignore the line's band (a dark line is not the wire)
-                px = np.round(uv).astype(int)
-                hidden |= masked[px[:, 1], px[:, 0]]
-                if 1.0 - hidden.mean() < min_visible:
-                    return "hidden by the incision line"
-            if self.outline is not None:
-                hidden |= ~self._backdrop(cam, pts)
-                if 1.0 - hidden.mean() < min_visible:
-                    return "hidden or not against the tissue"
-        return ""
+        """Why the cameras would not see the needle well at ``T_ref_N`` (:class:`ViewRule`;
+        "" when they would)."""
+        return self.views.why_not(T_ref_N, tools, incision, strict)
 
     def _tool_parts(self, T_ref_T: np.ndarray) -> tuple[ToolCylinder, ToolCylinder]:
-        """The gripper at ``T_ref_T`` as the parts that may hide the needle: its jaws (a
-        cylinder of ``jaw_radius`` over ``jaw_length`` behind the tip) and its shaft
-        (``tool_radius``, on to ``tool_length`` behind the tip)."""
-        s = self.s
-        tip, z = T_ref_T[:3, 3], T_ref_T[:3, 2]
-        heel = tip - s.jaw_length * z
-        return (ToolCylinder(tip, heel, s.jaw_radius),
-                ToolCylinder(heel, tip - s.tool_length * z, s.tool_radius))
-
-    def _behind_tool(self, cam: CameraModel, uv: np.ndarray, T_ref_T: np.ndarray
-                     ) -> np.ndarray:
-        """Which image points ``uv`` (k, 2) the gripper at ``T_ref_T`` may hide. Depth is
-        ignored, so a point in front of the tool counts as hidden too: the estimate errs
-        toward refusing a view."""
-        return hidden_by(self._tool_parts(T_ref_T), cam, uv)
-
-    def _backdrop(self, cam: CameraModel, pts: np.ndarray) -> np.ndarray:
-        """Which of ``pts`` (k, 3, ref) ``cam`` sees against the tissue: the ray through
-        the point meets the tissue plane beyond it, inside the outline (a convex polygon
-        in the plane)."""
-        assert self.outline is not None
-        o = cam.T_ref_cam[:3, 3]
-        n, p0 = self.normal, self.outline[0]
-        d = pts - o
-        den = d @ n
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lam = ((p0 - o) @ n) / den
-        beyond = np.abs(den) > 1e-12
-        beyond &= lam > 1.0             # the surface must lie beyond the needle
-        hit = o + np.where(beyond, lam, 0.0)[:, None] * d
-        edges = np.roll(self.outline, -1, axis=0) - self.outline
-        # the polygon's winding about the normal: inside is on the same side of every edge
-        sign = 1.0 if float(np.cross(edges[0], edges[1]) @ n) >= 0 else -1.0
-        inside = beyond
-        for a, e in zip(self.outline, edges, strict=True):
-            inside &= sign * (np.cross(e, hit - a) @ n) > 0
-        return inside
+        return self.views.tool_parts(T_ref_T)
 
     # -- planning -------------------------------------------------------------------------
     def _plan(self) -> dict[str, Any]:
@@ -983,30 +1221,17 @@ class NeedleProcedure:
             self.geometry = SutureGeometry.for_needle(self.needle, s.depth)
         except NeedleError as exc:
             raise _refuse("bad_suture", str(exc)) from None
-        why: dict[str, str] = {}
-        pick = _drive_pick(s)
         try:
             ways = drive_ways(inc, self.normal, self.geometry, s)
         except NeedleError as exc:
             raise _refuse("bad_suture", str(exc)) from None
-        for chosen in ways:
-            way, _, drive = chosen
-            options = []
-            for arm in self.arms:
-                try:
-                    choice = select_grasp(
-                        self.needle, drive, pick,
-                        reachable=lambda T, a=arm: self._reach(a, [T])[0])
-                except NeedleError as exc:
-                    why[f"{arm} ({way})"] = str(exc)
-                    continue
-                options.append((choice.score, arm, choice))
-            if options:
-                break
-        else:
-            raise _refuse("out_of_reach", "no arm can drive this suture either way: "
-                          + "; ".join(f"{a}: {w}" for a, w in why.items()))
-        _, self.driver, self.drive_choice = max(options, key=lambda o: o[0])
+        try:
+            pick = _drive_pick(s)
+            chosen, self.driver, self.drive_choice = _driver_choice(ways, {
+                a: (lambda k, a=a: select_grasp(self.needle, ways[k][2], pick, reachable=(
+                    lambda T: self._reach(a, [T])[0]))) for a in self.arms})
+        except NeedleError as exc:
+            raise _refuse("out_of_reach", str(exc)) from None
         self.picker = next(a for a in self.arms if a != self.driver)
         way, self.G_CS, self.drive = chosen
         return {"driver": self.driver, "picker": self.picker, "drive_direction": way,
@@ -1024,26 +1249,20 @@ class NeedleProcedure:
         figures = self._plan()
         T_N = self._converged("grasp", init=True, static=False)
         assert self.drive_choice is not None and self.picker is not None
-        arm, r = self.picker, self.needle.radius
-        lo, hi = grasp_band(self.needle, s.drive_grasp)
-        phi_B = self.drive_choice.phi
-        # the pick-up grasp leaves the driver's grasp point free (the hand-off puts both
-        # jaws on the needle)
-        gap = (s.separation + s.grasp_margin) / r
-        free = [(max(lo, phi_B + gap), hi), (lo, min(hi, phi_B - gap))]
-        phis = np.concatenate([np.linspace(a, b, 7) for a, b in free if b >= a] or [[]])
+        arm = self.picker
+        phis = _pickup_phis(self.needle, s, self.drive_choice.phi)
         if not phis.size:
             raise _refuse("no_grasp", "no part of the needle is free for the pick-up grasp "
                                       f"{s.separation * 1e3:.1f} mm from the driving grasp")
         point = self.incision.mean(axis=0)
         why: dict[str, int] = {}
         handoffs = self._handoff_candidates()
-        chosen: tuple[SurfaceGrasp, np.ndarray, np.ndarray] | None = None
-        # of the grasps the arm reaches and sees past, the first that also has a hand-off
-        # pose: the pick-up decides how the needle sits in the holder's jaws, and so where
-        # the two arms can meet. The full lift first; a needle near the pad's edge,
-        # lifted that far, may stand against the dark beyond it, and a lower lift keeps
-        # it against the tissue
+        chosen: tuple[SurfaceGrasp, np.ndarray, int] | None = None
+        # of the grasps the arm reaches and sees past, the first that also has
+        # handoff_meetings hand-off poses, else the one with the most: the pick-up
+        # decides how the needle sits in the holder's jaws, and so where the two arms can
+        # meet. The full lift first; a needle near the pad's edge, lifted that far, may
+        # stand against the dark beyond it, and a lower lift keeps it against the tissue
         grasps = [g for phi in phis for g in surface_grasps(
             self.needle, T_N, float(phi), point, self.normal, s.pickup_grasp)]
         grasps.sort(key=lambda g: -g.elevation)
@@ -1059,18 +1278,19 @@ class NeedleProcedure:
                 if seen:
                     why[f"lifted needle {seen}"] = why.get(f"lifted needle {seen}", 0) + 1
                     continue
-                T_h = self._meeting(g.G_TN, handoffs, None, why)
-                if T_h is not None:
-                    chosen = (g, T_h, up)
+                n = len(self._meetings(g.G_TN, handoffs, None, why, s.handoff_meetings))
+                if n and (chosen is None or n > chosen[2]):
+                    chosen = (g, up, n)
+                if n >= s.handoff_meetings:
                     break
-            if chosen is not None:
+            if chosen is not None and chosen[2] >= s.handoff_meetings:
                 break
         if chosen is None:
             raise _refuse("out_of_reach", f"arm {arm!r} has no pick-up grasp of the tracked "
                                           f"needle that leads to a hand-off ("
                                           + ", ".join(f"{k}: {v}" for k, v in why.items())
                                           + ")")
-        g, _, up = chosen
+        g, up, meetings = chosen
         self._move(arm, _back_off(g.T_ref_T, s.approach), "pick-up approach")
         self._move(arm, g.T_ref_T, "pick-up reach")
         self.cell.close(arm)
@@ -1078,49 +1298,45 @@ class NeedleProcedure:
         self.holder, self.G_TN = arm, self._grasp_seen(arm, T_N)
         figures.update(arm=arm, grasp_phi_deg=round(math.degrees(g.params.phi), 2),
                        shaft_elevation_deg=round(math.degrees(g.elevation), 1),
-                       pickup_candidates=len(grasps),
+                       pickup_candidates=len(grasps), handoff_meetings=meetings,
                        lift_mm=round(float(up[:3, 3] @ self.normal) * 1e3, 1))
         return figures
 
     def _handoff_candidates(self) -> list[tuple[np.ndarray, np.ndarray, float, float]]:
-        """Needle poses for the hand-off where the driver reaches its driving grasp and
-        its approach: the drive's start pose raised ``handoff_heights`` above the tissue
-        and turned about the needle's centre, the least turn first. Items: ``(T_ref_N,
-        driver's T_ref_T, turn (rad), height (m))``."""
-        s = self.s
-        assert self.drive is not None and self.drive_choice is not None
+        """The hand-off poses the driver reaches (:func:`_handoff_poses`)."""
         B = self.driver
-        assert B is not None
-        start = self.drive.G_PS @ self.drive.G_SN[0]
-        G_NT_B = invert(self.drive_choice.G_TN)
-        out = []
-        for T_h, turn, H in _turned_and_raised(start, self.normal, s.handoff_heights):
-            T_B = T_h @ G_NT_B
-            if self._reach(B, [T_B, _back_off(T_B, s.approach)])[0]:
-                out.append((T_h, T_B, turn, H))
-        return out
+        assert self.drive is not None and self.drive_choice is not None and B is not None
+        m = self.s.reach_margin
+        return _handoff_poses(self.drive, self.drive_choice.G_TN, self.normal, self.s,
+                              lambda T: self.cell.reachable_all(B, T, m),
+                              self.views.aim(self.incision.mean(axis=0)))
 
-    def _meeting(self, G_TN_A: np.ndarray, handoffs: Sequence[tuple], T_A0: np.ndarray | None,
-                 why: dict[str, int]) -> tuple | None:
-        """The first hand-off candidate where the holder, gripping with ``G_TN_A``,
-        reaches (along its straight path from ``T_A0``, when given) and both cameras see
-        the needle past both grippers; ``why`` counts the refusals."""
+    def _meetings(self, G_TN_A: np.ndarray, handoffs: Sequence[tuple],
+                  T_A0: np.ndarray | None, why: dict[str, int], most: int = 1) -> list[tuple]:
+        """The first ``most`` hand-off candidates where the holder, gripping with
+        ``G_TN_A``, reaches (along its straight path from ``T_A0``, when given) and both
+        cameras see the needle past both grippers; ``why`` counts the refusals."""
         A = self.picker
         assert A is not None
-        G_NT_A = invert(G_TN_A)
-        for item in handoffs:
-            T_h, T_B = item[0], item[1]
-            T_A = T_h @ G_NT_A
-            poses = [T_A] if T_A0 is None else _path(T_A0, T_A)
-            if not self._reach(A, poses)[0]:
+        if not handoffs:
+            return []
+        m = self.s.reach_margin
+        T_A = np.stack([item[0] for item in handoffs]) @ invert(G_TN_A)
+        there = self.cell.reachable_all(A, T_A, m)
+        out = []
+        for k, item in enumerate(handoffs):
+            if not there[k] or (T_A0 is not None and not self.cell.reachable_all(
+                    A, np.stack(_path(T_A0, T_A[k])), m).all()):
                 why[f"{A} cannot hold it there"] = why.get(f"{A} cannot hold it there", 0) + 1
                 continue
-            seen = self._view(T_h, [T_B, T_A])
+            seen = self._view(item[0], [item[1], T_A[k]])
             if seen:
                 why[f"hand-off {seen}"] = why.get(f"hand-off {seen}", 0) + 1
                 continue
-            return item
-        return None
+            out.append(item)
+            if len(out) >= most:
+                break
+        return out
 
     def _step_nh(self) -> dict[str, Any]:
         s = self.s
@@ -1136,12 +1352,13 @@ class NeedleProcedure:
                                       " mm): the jaws would meet")
         why: dict[str, int] = {}
         handoffs = self._handoff_candidates()
-        item = self._meeting(G_TN_A, handoffs, self.cell.gripper_pose(A), why)
-        if item is None:
+        found = self._meetings(G_TN_A, handoffs, self.cell.gripper_pose(A), why)
+        if not found:
             raise _refuse("out_of_reach", f"none of {len(handoffs)} hand-off poses the driver "
                                           "reaches suits the holder and the cameras ("
                                           + ", ".join(f"{k}: {v}" for k, v in why.items())
                                           + ")")
+        item = found[0]
         T_h = item[0]
         figures: dict[str, Any] = {"handoff_height_mm": round(item[3] * 1e3, 1),
                                    "handoff_turn_deg": round(math.degrees(item[2]), 1)}

@@ -20,7 +20,7 @@ from typing import Any
 
 from oralnav.safety.errors import StateError
 
-from .needle_procedure import NeedleProcedure, ProcedureSettings, port_drives
+from .needle_procedure import NeedleProcedure, ProcedureSettings, port_drives, port_pair
 
 log = logging.getLogger(__name__)
 
@@ -46,9 +46,10 @@ class NeedleSession:
         if not self._lock.acquire(blocking=False):
             raise StateError(f"cannot load a cell while needle step {self._busy} runs")
         try:
-            # the cell set up for the suture: ports chosen with this procedure's rule
+            # the cell set up for the suture: ports chosen with this procedure's rules
             cell, info = trial_cell(int(trial), difficulty=float(difficulty),
-                                    drivable=port_drives(CT1, self._settings))
+                                    drivable=port_drives(CT1, self._settings),
+                                    workable=port_pair(CT1, self._settings))
             proc = NeedleProcedure(cell, info.incision, info.surface_normal, self._settings,
                                    surface_outline=info.surface_outline)
             self._proc = proc

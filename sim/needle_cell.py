@@ -177,6 +177,32 @@ class ArmReach:
         """Angle (rad) between the tool's ``z`` axis and the shaft."""
         return self.wrist(T_ref_tool).bend
 
+    def reachable_all(self, T_ref_tool: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """Whether the arm reaches each of the poses ``T_ref_tool`` (N x 4 x 4, m), as
+        :meth:`reachable` would answer (N,) bool: for planners that ask about thousands
+        of poses. The bounds of :meth:`reachable`'s quick pass, on all poses at once,
+        settle most of them both ways (the jaws' bend from the shaft is at most
+        acos(cos pitch_lim cos yaw_lim)); the rest go through :meth:`wrist`."""
+        T = np.asarray(T_ref_tool, dtype=float).reshape(-1, 4, 4)
+        z = T[:, :3, 2]
+        L = np.linalg.norm(T[:, :3, 3] - self.rcm, axis=1)
+        ok = (L >= self.min_insertion) & (L <= self.max_insertion)
+        d = T[:, :3, 3] - self.yaw_to_tip * z - self.rcm
+        n = np.linalg.norm(d, axis=1)
+        far = n > self.pitch_to_yaw
+        nf = np.where(far, n, 1.0)
+        bend0 = np.arccos(np.clip(np.einsum("ij,ij->i", z, d) / nf, -1.0, 1.0))
+        lean = np.arcsin(np.clip(self.pitch_to_yaw / nf, 0.0, 1.0))
+        lp, ly = self.max_wrist_pitch - margin, self.max_wrist_yaw - margin
+        sure = far & (bend0 + lean <= min(lp, ly, math.pi / 2))
+        most = (math.acos(max(-1.0, min(1.0, math.cos(lp) * math.cos(ly))))
+                if lp < math.pi / 2 and ly < math.pi / 2 else math.pi)
+        never = far & (bend0 - lean > most)
+        out = ok & sure
+        for i in np.nonzero(ok & ~sure & ~never)[0]:
+            out[i] = self.reachable(T[i], margin)[0]
+        return out
+
     def reachable(self, T_ref_tool: np.ndarray, margin: float = 0.0) -> tuple[bool, str]:
         """``(ok, reason)``: whether the arm can put its tool at ``T_ref_tool`` (4x4, m)
         with its wrist joints ``margin`` (rad) inside their limits; the reason names the
@@ -418,6 +444,15 @@ class NeedleCell:
         limits, and the limit that refuses it."""
         return self._reach[self._check_name(name)].reachable(
             _pose(T_ref_tool, "T_ref_tool"), margin)
+
+    def reachable_all(self, name: str, T_ref_tool: np.ndarray, margin: float = 0.0
+                      ) -> np.ndarray:
+        """:meth:`reachable` for each of the reported poses ``T_ref_tool`` (N x 4 x 4):
+        (N,) bool."""
+        T = np.asarray(T_ref_tool, dtype=float)
+        if T.ndim != 3 or T.shape[1:] != (4, 4) or not np.all(np.isfinite(T)):
+            raise CellError(f"T_ref_tool must be finite N x 4 x 4 poses, got shape {T.shape}")
+        return self._reach[self._check_name(name)].reachable_all(T, margin)
 
     # -- what the procedure may do ----------------------------------------------------
     def move(self, name: str, T_ref_tool_reported: np.ndarray, *,

@@ -29,7 +29,11 @@ The layout, in the stereo endoscope's reference frame (the left channel; metres)
   centre, and takes the first from which the check passes (the procedure's: the suture
   driven, the tip regrasped and the needle pulled out; the record's ``port``, and
   ``port_drives`` false when none could: the arm takes its first site, and the trial
-  may fail by reach); reach: the
+  may fail by reach). With a ``workable`` check too, both arms' sites are drawn
+  before either arm is parked and the pair is chosen together: the first pair of sites
+  (fewest passed over first, at most 40 pairs) from which one arm drives and pulls and
+  the other picks the needle up and hands it over (``ports_workable``); else each arm
+  as above. Reach: the
   dVRK manipulator's insertion, the tip 30-240 mm from the RCM, and the wrist of a da
   Vinci Large Needle Driver (pitch and yaw +-80 deg, :class:`ArmReach`). So the whole
   pad lies within the insertion range of both arms (until session 17 the insertion
@@ -49,7 +53,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -65,7 +69,7 @@ from oralnav.control.needle import Needle
 from .needle_cell import ArmReach, CellError, NeedleCell
 from .scene import Gripper, Imaging, NeedleObject, Scene, TissuePad
 
-__all__ = ["RIG_FILE", "PortCheck", "TrialInfo", "trial_cell", "trial_scene"]
+__all__ = ["RIG_FILE", "PairCheck", "PortCheck", "TrialInfo", "trial_cell", "trial_scene"]
 
 #: The stereo endoscope the trials are seen by.
 RIG_FILE = Path(__file__).resolve().parent.parent / "config" / "rigs" / "stereo_endoscope.toml"
@@ -106,6 +110,15 @@ SITE_DISTANCE = (0.100, 0.160)
 #: of ``normal`` (3,), reference frame (m); ``oralnav.daemon.needle_procedure.port_drives``
 #: makes the procedure's (the drive, then the regrasp of the tip and the pull).
 PortCheck = Callable[[ArmReach, np.ndarray, np.ndarray], bool]
+#: ``workable(reaches, incision, normal, T_ref_needle, rig, outline) -> bool``: whether
+#: the two arms, ``reaches`` ({name: ArmReach}), can together carry out the suture on the
+#: needle lying at ``T_ref_needle`` (4x4, reference frame, m) under the cameras of
+#: ``rig``, the tissue's extent ``outline`` (4, 3): one drives and pulls, the other picks
+#: the needle up and hands it over (``oralnav.daemon.needle_procedure.port_pair``).
+PairCheck = Callable[[Mapping[str, ArmReach], np.ndarray, np.ndarray, np.ndarray, Rig,
+                      np.ndarray], bool]
+#: The most port pairs a trial asks ``workable`` about (of PORT_CANDIDATES squared).
+PAIR_CHECKS = 40
 
 
 @dataclass(frozen=True)
@@ -189,12 +202,16 @@ def _gripper_clear(rig: Rig, T_ref_tool: np.ndarray, pts_ref: np.ndarray) -> boo
 
 
 def trial_scene(seed: int, *, difficulty: float = 1.0, rig_file: str | Path = RIG_FILE,
-                drivable: PortCheck | None = None
+                drivable: PortCheck | None = None, workable: PairCheck | None = None
                 ) -> tuple[Scene, dict[str, ArmReach], TrialInfo]:
     """The scene, the arms' reach and the record of trial ``seed`` (see the module
     docstring); :func:`trial_cell` builds the cell from them. ``drivable(reach,
     incision, normal) -> bool``: entry port selection (the module docstring); without it
-    each arm takes the one port site it draws."""
+    each arm takes the one port site it draws. ``workable`` (with ``drivable`` only):
+    the two ports are chosen together, the first pair of sites it accepts."""
+    if workable is not None and drivable is None:
+        raise CellError("a workable check chooses among port sites, which only a "
+                        "drivable check draws: give both")
     if not (isinstance(seed, int | np.integer) and 0 <= seed < 2**63):
         raise CellError(f"trial seed must be an integer in [0, 2^63), got {seed!r}")
     if not (math.isfinite(difficulty) and 0.0 <= difficulty <= 1.0):
@@ -209,7 +226,7 @@ def trial_scene(seed: int, *, difficulty: float = 1.0, rig_file: str | Path = RI
         attempts += 1
         if attempts > MAX_ATTEMPTS:  # the shipped rig needs 1-2 attempts
             raise CellError(f"trial {seed}: no valid layout in {MAX_ATTEMPTS} attempts")
-        out = _draw(rig, rng, drivable)
+        out = _draw(rig, rng, drivable, workable)
     scene_parts, reach, values, incision, normal = out
     img = dict(background=u(20.0, 50.0), pad_level=u(150.0, 200.0),
                needle_level=u(60.0, 90.0), specular=u(120.0, 200.0),
@@ -232,22 +249,76 @@ def trial_scene(seed: int, *, difficulty: float = 1.0, rig_file: str | Path = RI
                   grippers=grippers)
     values["imaging"] = {k: _r(v, 4) for k, v in img.items()}
     values["attempts"] = attempts
+    return scene, reach, TrialInfo(int(seed), D, values, incision, normal,
+                                   _outline(pad.T_ref_pad))
+
+
+def _outline(T_ref_pad: np.ndarray) -> np.ndarray:
+    """The pad's corners (4, 3), reference frame (m)."""
     sx, sy = PAD_SIZE
-    corners = transform_points(pad.T_ref_pad, np.array(
+    return transform_points(T_ref_pad, np.array(
         [[-sx, -sy, 0.0], [sx, -sy, 0.0], [sx, sy, 0.0], [-sx, sy, 0.0]]) / 2)
-    return scene, reach, TrialInfo(int(seed), D, values, incision, normal, corners)
 
 
 def trial_cell(seed: int, *, difficulty: float = 1.0, drivable: PortCheck | None = None,
+               workable: PairCheck | None = None,
                **options) -> tuple[NeedleCell, TrialInfo]:
     """A randomised two-arm needle cell for trial ``seed`` and what was drawn, its ports
     chosen with ``drivable`` (:func:`trial_scene`); ``options`` go to :class:`NeedleCell`
     (e.g. ``kinematic_error``)."""
-    scene, reach, info = trial_scene(seed, difficulty=difficulty, drivable=drivable)
+    scene, reach, info = trial_scene(seed, difficulty=difficulty, drivable=drivable,
+                                     workable=workable)
     return NeedleCell(scene, reach, **options), info
 
 
-def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None):
+def _site(rng: np.random.Generator, centre: np.ndarray, side: float,
+          lateral: tuple[float, float], vertical: float, distance: tuple[float, float]
+          ) -> ArmReach:
+    """One port site on ``side`` (-1 left, +1 right) of the pad ``centre`` (m), drawn in
+    the region ``lateral``, ``vertical``, ``distance`` (see :data:`SITE_LATERAL`)."""
+    u = rng.uniform
+    lat = side * u(*lateral)
+    ver = u(-vertical, vertical)
+    dist = u(*distance)
+    depth = math.sqrt(max(dist**2 - lat**2 - ver**2, 0.0))
+    rcm = centre + np.array([lat, ver, -depth])
+    rcm[2] = min(rcm[2], -0.002)                 # behind the camera's plane
+    # the wrist: the da Vinci Large Needle Driver's (ArmReach's defaults)
+    return ArmReach(rcm=rcm, min_insertion=MIN_INSERTION, max_insertion=MAX_INSERTION)
+
+
+def _choose_ports(sites: dict[str, list[ArmReach]], incision: np.ndarray, normal: np.ndarray,
+                  T_ref_needle: np.ndarray, rig: Rig, outline: np.ndarray,
+                  drivable: PortCheck, workable: PairCheck | None
+                  ) -> tuple[dict[str, int], dict[str, bool], bool | None]:
+    """The two arms' ports among their candidate ``sites``: the first pair (fewest
+    sites passed over first) that ``workable`` accepts, of at most :data:`PAIR_CHECKS`;
+    without one, each arm's first site ``drivable`` accepts, else its first (the arm may
+    still pick up and hand off; the other may drive). ``(port index, whether it
+    drives, whether the pair is workable (None unasked))`` per arm."""
+    n = {name: len(v) for name, v in sites.items()}
+    left, right = sites
+    if workable is not None:
+        pairs = sorted(((i, j) for i in range(n[left]) for j in range(n[right])),
+                       key=lambda p: (max(p), p[0] + p[1], p[0]))
+        for i, j in pairs[:PAIR_CHECKS]:
+            if workable({left: sites[left][i], right: sites[right][j]}, incision, normal,
+                        T_ref_needle, rig, outline):
+                ports = {left: i, right: j}
+                return ports, {a: drivable(sites[a][k], incision, normal)
+                               for a, k in ports.items()}, True
+    ports, drives = {}, {}
+    for name, cands in sites.items():
+        ports[name], drives[name] = 0, False
+        for k, site in enumerate(cands):
+            if drivable(site, incision, normal):
+                ports[name], drives[name] = k, True
+                break
+    return ports, drives, None if workable is None else False
+
+
+def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None,
+          workable: PairCheck | None = None):
     """One attempt at the layout; ``None`` if a constraint fails (the caller draws
     again from the same stream)."""
     u = rng.uniform
@@ -301,31 +372,23 @@ def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None)
     # -- the arms and their parked grippers ---------------------------------------------
     cam = rig[rig.reference]
     grippers, reach, arms = [], {}, {}
-    for name, side in (("left", -1.0), ("right", 1.0)):
-        # candidate port sites, all drawn (a fixed share of the stream); the first the
-        # check passes is taken, else the first (the arm may still pick up and hand
-        # off; the other may drive)
-        sites = []
-        lat, ver, far = ((SITE_LATERAL, SITE_VERTICAL, SITE_DISTANCE) if drivable is not None
-                         else (PORT_LATERAL, PORT_VERTICAL, PORT_DISTANCE))
-        for _ in range(PORT_CANDIDATES if drivable is not None else 1):
-            lateral = side * u(*lat)
-            vertical = u(-ver, ver)
-            dist = u(*far)
-            depth = math.sqrt(max(dist**2 - lateral**2 - vertical**2, 0.0))
-            rcm = centre + np.array([lateral, vertical, -depth])
-            rcm[2] = min(rcm[2], -0.002)                 # behind the camera's plane
-            # the wrist: the da Vinci Large Needle Driver's (ArmReach's defaults)
-            sites.append(ArmReach(rcm=rcm, min_insertion=MIN_INSERTION,
-                                  max_insertion=MAX_INSERTION))
-        port, drives = 0, None
-        if drivable is not None:
-            drives = False
-            for k, site in enumerate(sites):
-                if drivable(site, incision, normal):
-                    port, drives = k, True
-                    break
-        rcm = sites[port].rcm
+    sides = (("left", -1.0), ("right", 1.0))
+    chosen = None
+    if drivable is not None:
+        # candidate port sites for both arms, all drawn (a fixed share of the stream),
+        # before either arm is parked: the pair is chosen together
+        sites = {name: [_site(rng, centre, side, SITE_LATERAL, SITE_VERTICAL, SITE_DISTANCE)
+                        for _ in range(PORT_CANDIDATES)] for name, side in sides}
+        chosen = _choose_ports(sites, incision, normal, T_ref_needle, rig,
+                               _outline(T_ref_pad), drivable, workable)
+    for name, side in sides:
+        if chosen is None:          # the nominal port beside the endoscope's
+            site, port, drives = (_site(rng, centre, side, PORT_LATERAL, PORT_VERTICAL,
+                                        PORT_DISTANCE), 0, None)
+        else:
+            port, drives = chosen[0][name], chosen[1][name]
+            site = sites[name][port]
+        rcm = site.rcm
         for _ in range(50):
             px = (u(70.0, 120.0) if side < 0 else cam.width - u(70.0, 120.0),
                   cam.height / 2 + u(-100.0, 100.0))
@@ -354,7 +417,7 @@ def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None)
         needed = np.concatenate([arc_ref, incision, tip[None]])
         if float(np.linalg.norm(needed - rcm, axis=1).max()) > MAX_INSERTION:
             return None       # not with the shipped rig: the pad is 80-120 mm away
-        reach[name] = sites[port]
+        reach[name] = site
         grippers.append(Gripper(name, T_tool, opening=OPEN_GAP, shaft_length=SHAFT_LENGTH))
         arms[name] = {"rcm": _r(rcm), "port": port, "port_drives": drives,
                       "rcm_from_pad_centre": _r(np.linalg.norm(rcm - centre)),
@@ -371,6 +434,7 @@ def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None)
                    "radius": CT1.radius, "wire_diameter": CT1.wire_diameter,
                    "arc_deg": 180.0, "thread_length": THREAD_LENGTH},
         "arms": arms,
+        "ports_workable": None if chosen is None else chosen[2],
     }
     pad = TissuePad("pad", T_ref_pad, PAD_SIZE,
                     incision=((float(a[0]), float(a[1])), (float(b[0]), float(b[1]))))

@@ -21,6 +21,7 @@ from oralnav.daemon.needle_procedure import (
     ProcedureSettings,
     StepResult,
     port_drives,
+    port_pair,
     step_rates,
 )
 from oralnav.safety.errors import StateError
@@ -28,6 +29,11 @@ from oralnav.sim.needle_cell import NeedleCell
 from oralnav.sim.needle_trials import CT1, trial_cell, trial_scene
 
 FAST = ProcedureSettings(particles=1500)
+
+
+def _ports(settings: ProcedureSettings) -> dict:
+    """The trial's ports chosen for the suture with ``settings``' rules, as the bench's."""
+    return {"drivable": port_drives(CT1, settings), "workable": port_pair(CT1, settings)}
 
 
 def _procedure(seed: int = 0, settings: ProcedureSettings = FAST, **cell_options):
@@ -152,6 +158,34 @@ def test_a_port_that_drives_but_cannot_pull_is_not_taken():
     assert not port_drives(CT1, FAST)(reach, info.incision, info.surface_normal)
 
 
+def test_ports_are_chosen_so_that_the_other_arm_can_hand_off():
+    """Entry port selection for the pair of arms (``port_pair``): on trial 70 the first
+    ports from which each arm drives leave the other arm no pick-up grasp that holds the
+    needle at handoff_meetings hand-off poses both arms reach and the cameras see; the
+    pair check says so, the trial chosen with it takes other sites, which it accepts,
+    and there the pick-up (with that many hand-off poses) and the hand-off pass
+    (truth)."""
+    drives_only, info = trial_cell(70, drivable=port_drives(CT1, FAST))
+    check = port_pair(CT1, FAST)
+
+    def workable(cell: NeedleCell) -> bool:
+        return check({a: cell.arm_reach(a) for a in cell.grippers}, info.incision,
+                     info.surface_normal, cell.truth().T_ref_needle, cell.rig,
+                     info.surface_outline)
+
+    assert not workable(drives_only)
+    cell, proc = _procedure(70, **_ports(FAST))
+    assert proc.cell is cell and workable(cell)
+    ports = [cell.arm_reach(a).rcm for a in cell.grippers]
+    assert not all(np.array_equal(p, drives_only.arm_reach(a).rcm)
+                   for p, a in zip(ports, cell.grippers, strict=True))
+    ng = proc.run("NG")
+    assert ng.ok and ng.truth_ok, ng
+    assert ng.figures["handoff_meetings"] == FAST.handoff_meetings
+    nh = proc.run("NH")
+    assert nh.ok and nh.truth_ok, nh
+
+
 def test_a_tracker_that_has_not_converged_refuses_before_moving():
     """Bad input: with the needle as bright as the pad the tracker cannot converge, and NG
     refuses with the tracker's reason; no arm moves."""
@@ -200,6 +234,10 @@ def test_bad_construction_is_refused():
         ProcedureSettings(show_heights=(0.0, -0.005))
     with pytest.raises(NeedleError, match="strict_visible"):
         ProcedureSettings(strict_visible=-0.1)
+    with pytest.raises(NeedleError, match="handoff_shifts"):
+        ProcedureSettings(handoff_shifts=())
+    with pytest.raises(NeedleError, match="handoff_meetings"):
+        ProcedureSettings(handoff_meetings=0)
 
 
 def test_grasp_hand_off_and_drive_on_a_trial_cell():
@@ -322,7 +360,7 @@ def test_a_regrasp_that_holds_nothing_is_caught_by_the_pull():
     cameras, the look finds the needle where it was, not where the jaws took it, and
     NP fails with grasp_missed, not done."""
     cell, proc = _procedure(1, settings=ProcedureSettings(),
-                            drivable=port_drives(CT1, ProcedureSettings()))
+                            **_ports(ProcedureSettings()))
     for step in ("NG", "NH", "ND", "NR"):
         r = proc.run(step)
         assert r.ok and r.truth_ok, r
@@ -334,16 +372,15 @@ def test_a_regrasp_that_holds_nothing_is_caught_by_the_pull():
 
 
 def test_the_pulled_needle_is_turned_to_the_cameras_before_the_look():
-    """Issue 7, the pull (NP) shows the regrasp's hold: on trial 18 (ports chosen for
+    """Issue 7, the pull (NP) shows the regrasp's hold: on trial 2 (ports chosen for
     the suture) the pull leaves the needle standing square to the tissue, which the
     cameras see nearly face-on, so they see the needle edge-on (beyond the 60 deg the
-    views measure well; with session 17's ports, 81 deg and partly over the dark beyond
-    the pad, where the look found half its arc and lost it). NP
-    turns it to where both cameras see it (the planner's view rule) before the look:
-    the look then sees it there (truth), and the needle is out of the tissue in the
-    jaws."""
-    cell, proc = _procedure(18, settings=ProcedureSettings(),
-                            drivable=port_drives(CT1, ProcedureSettings()))
+    views measure well; on session 17's trial 18, 81 deg and partly over the dark
+    beyond the pad, where the look found half its arc and lost it). NP turns it to
+    where both cameras see it (the planner's view rule) before the look: the look then
+    sees it there (truth), and the needle is out of the tissue in the jaws."""
+    cell, proc = _procedure(2, settings=ProcedureSettings(),
+                            **_ports(ProcedureSettings()))
     for step in ("NG", "NH", "ND", "NR"):
         r = proc.run(step)
         assert r.ok and r.truth_ok, r

@@ -442,3 +442,24 @@ def test_the_quick_reach_pass_agrees_with_the_solved_wrist():
                   and abs(w.yaw) <= reach.max_wrist_yaw - margin
                   and reach.min_insertion <= w.insertion <= reach.max_insertion)
         assert reach.reachable(T, margin)[0] == solved, i
+
+
+def test_reachable_all_answers_as_reachable_one_by_one(cell):
+    """Item 4, reach, for planners asking about thousands of poses: ArmReach.reachable_all
+    and NeedleCell.reachable_all give, for 3000 random tool poses at once (with and
+    without a planning margin, some beyond the insertion range), the verdict of
+    reachable asked pose by pose; a batch that is not N x 4 x 4 poses is refused."""
+    reach = ArmReach(rcm=np.zeros(3), max_insertion=0.2)
+    rng = np.random.default_rng(23)
+    T = np.tile(np.eye(4), (3000, 1, 1))
+    T[:, :3, :3] = Rotation.random(3000, random_state=5).as_matrix()
+    T[:, :3, 3] = rng.normal(size=(3000, 3)) * 0.05 + [0.0, 0.0, 0.12]
+    for margin in (0.0, math.radians(3.0)):
+        one = np.array([reach.reachable(P, margin)[0] for P in T])
+        assert 0.2 < one.mean() < 0.8             # both verdicts well represented
+        np.testing.assert_array_equal(reach.reachable_all(T, margin), one)
+    name = cell.grippers[0]
+    batch = np.stack([cell.gripper_pose(name)] * 2)
+    assert cell.reachable_all(name, batch).tolist() == [cell.reachable(name, batch[0])[0]] * 2
+    with pytest.raises(CellError, match="N x 4 x 4"):
+        cell.reachable_all(name, batch[0])

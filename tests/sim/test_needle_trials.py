@@ -179,3 +179,45 @@ def test_ports_are_selected_for_the_suture():
                                atol=1e-6)
     # the sites differ: the third is not the first
     assert not np.allclose(reach["left"].rcm, reach_none["left"].rcm)
+
+
+def test_ports_are_chosen_together_with_a_pair_check():
+    """Item 4, trial scenes (entry port selection for the pair of arms): with a
+    ``workable`` check too, the two arms' candidate sites are asked about in pairs,
+    fewest sites passed over first ((0, 0), (0, 1), (1, 0), ...), with the arms' reaches
+    by name, the incision, the surface normal, the pose of the needle lying on the pad,
+    the rig and the pad's outline; the first pair it accepts is taken. One that accepts
+    none leaves each arm the first site ``drivable`` accepts, recorded as not workable.
+    The pad, the incision and the needle are drawn before the ports, and so are the
+    same either way; a pair check without a drivable check, which draws the sites, is
+    refused."""
+    asked = []
+
+    def third_pair(reaches, incision, normal, T_ref_needle, rig, outline):
+        asked.append((reaches, incision, normal, T_ref_needle, rig, outline))
+        return len(asked) == 3
+
+    scene, reach, info = trial_scene(5, drivable=lambda *a: True, workable=third_pair)
+    assert [a["port"] for a in info.values["arms"].values()] == [1, 0]
+    assert info.values["ports_workable"] is True
+    reaches, incision, normal, T_needle, rig, outline = asked[0]
+    assert rig is scene.rig
+    np.testing.assert_allclose(outline, info.surface_outline)
+    assert list(reaches) == ["left", "right"]
+    assert all(isinstance(r, ArmReach) for r in reaches.values())
+    np.testing.assert_allclose(incision, info.incision)
+    np.testing.assert_allclose(normal, info.surface_normal)
+    np.testing.assert_allclose(T_needle, scene.needles[0].T_ref_needle)
+    assert asked[2][0]["left"] is reach["left"] and asked[2][0]["right"] is reach["right"]
+    assert asked[1][0]["left"] is asked[0][0]["left"]        # (0, 1) after (0, 0)
+
+    _, reach_none, none = trial_scene(5, drivable=lambda *a: True,
+                                      workable=lambda *a: False)
+    assert [a["port"] for a in none.values["arms"].values()] == [0, 0]
+    assert none.values["ports_workable"] is False
+    assert all(a["port_drives"] for a in none.values["arms"].values())
+    for key in ("pad", "incision", "needle"):
+        assert none.values[key] == info.values[key]
+    assert not np.allclose(reach_none["left"].rcm, reach["left"].rcm)
+    with pytest.raises(CellError, match="drivable"):
+        trial_scene(5, workable=third_pair)
