@@ -534,11 +534,39 @@ def _handoff_poses(drive: Drive, G_TN_B: np.ndarray, normal: np.ndarray, s: Proc
             moved[:3, 3] += shift / far * d
         items += _turned_and_raised(moved, normal, s.handoff_heights)
     T_B = np.stack([T for T, _, _ in items]) @ invert(G_TN_B)
-    back = T_B.copy()
-    back[:, :3, 3] -= s.approach * T_B[:, :3, 2]      # _back_off, on them all
     ok = reach_all(T_B)
-    ok[ok] &= reach_all(back[ok])
+    ok[ok] &= reach_all(_back_off(T_B[ok], s.approach))
     return [(T_h, T_B[k], turn, H) for k, (T_h, turn, H) in enumerate(items) if ok[k]]
+
+
+def _meetings(handoffs: Sequence[tuple], G_TN_A: np.ndarray,
+              reach_all: Callable[[np.ndarray], np.ndarray], views: ViewRule, most: int,
+              T_A0: np.ndarray | None = None, why: dict[str, int] | None = None,
+              holder: str = "the holder") -> list[tuple]:
+    """The first ``most`` of the hand-off candidates ``handoffs`` (:func:`_handoff_poses`'
+    items) where the holder, gripping with ``G_TN_A``, reaches (``reach_all``; along its
+    straight path from ``T_A0``, when given) and the cameras see the needle past both
+    grippers (``views``); ``why`` counts the refusals, naming ``holder``."""
+    if not handoffs:
+        return []
+    why = {} if why is None else why
+    T_A = np.stack([item[0] for item in handoffs]) @ invert(G_TN_A)
+    there = reach_all(T_A)
+    out = []
+    for k, item in enumerate(handoffs):
+        if not there[k] or (T_A0 is not None
+                            and not reach_all(np.stack(_path(T_A0, T_A[k]))).all()):
+            why[f"{holder} cannot hold it there"] = why.get(f"{holder} cannot hold it there",
+                                                            0) + 1
+            continue
+        seen = views.why_not(item[0], [item[1], T_A[k]])
+        if seen:
+            why[f"hand-off {seen}"] = why.get(f"hand-off {seen}", 0) + 1
+            continue
+        out.append(item)
+        if len(out) >= most:
+            break
+    return out
 
 
 def port_drives(needle: Needle, settings: ProcedureSettings | None = None
@@ -669,7 +697,6 @@ def port_pair(needle: Needle, settings: ProcedureSettings | None = None
         meet = memo[key]
         if not meet:
             return False
-        T_h = np.stack([item[0] for item in meet])
         A = next(a for a in reaches if a != B)
         lifts = [_translation(h * normal) for h in sorted({s.lift, min(s.lift, s.lift_low)})]
         for phi in _pickup_phis(needle, s, choice.phi):
@@ -679,13 +706,9 @@ def port_pair(needle: Needle, settings: ProcedureSettings | None = None
                         and any(one[A](up @ g.T_ref_T) and not views.why_not(
                             up @ T_ref_needle, [up @ g.T_ref_T]) for up in lifts)):
                     continue
-                T_A = T_h @ invert(g.G_TN)
-                found = 0
-                for k in np.nonzero(reaches[A].reachable_all(T_A, m))[0]:
-                    if not views.why_not(T_h[k], [meet[k][1], T_A[k]]):
-                        found += 1
-                        if found >= s.handoff_meetings:
-                            return True
+                if len(_meetings(meet, g.G_TN, lambda T: reaches[A].reachable_all(T, m),
+                                 views, s.handoff_meetings)) >= s.handoff_meetings:
+                    return True
         return False
 
     return workable
@@ -1313,30 +1336,12 @@ class NeedleProcedure:
 
     def _meetings(self, G_TN_A: np.ndarray, handoffs: Sequence[tuple],
                   T_A0: np.ndarray | None, why: dict[str, int], most: int = 1) -> list[tuple]:
-        """The first ``most`` hand-off candidates where the holder, gripping with
-        ``G_TN_A``, reaches (along its straight path from ``T_A0``, when given) and both
-        cameras see the needle past both grippers; ``why`` counts the refusals."""
+        """:func:`_meetings` for the picker on this cell, its plans' margin."""
         A = self.picker
         assert A is not None
-        if not handoffs:
-            return []
         m = self.s.reach_margin
-        T_A = np.stack([item[0] for item in handoffs]) @ invert(G_TN_A)
-        there = self.cell.reachable_all(A, T_A, m)
-        out = []
-        for k, item in enumerate(handoffs):
-            if not there[k] or (T_A0 is not None and not self.cell.reachable_all(
-                    A, np.stack(_path(T_A0, T_A[k])), m).all()):
-                why[f"{A} cannot hold it there"] = why.get(f"{A} cannot hold it there", 0) + 1
-                continue
-            seen = self._view(item[0], [item[1], T_A[k]])
-            if seen:
-                why[f"hand-off {seen}"] = why.get(f"hand-off {seen}", 0) + 1
-                continue
-            out.append(item)
-            if len(out) >= most:
-                break
-        return out
+        return _meetings(handoffs, G_TN_A, lambda T: self.cell.reachable_all(A, T, m),
+                         self.views, most, T_A0, why, A)
 
     def _step_nh(self) -> dict[str, Any]:
         s = self.s
