@@ -269,12 +269,29 @@ def test_refinement_with_the_plane_fits_the_visible_arc(seed):
     assert not bare.ok and 0.35 < bare.support < 0.6
 
 
+def test_an_end_seen_along_the_wire_spreads_by_its_radius():
+    """Foreshortened ends (RefineSettings.end_spread_px): an end's spread is the wire's
+    radius in pixels times the cosine between the wire and the line of sight: none for
+    an end seen side-on, the whole radius (f r / depth) for one pointing at the camera,
+    half of it at 60 deg (the weights it sets: the next test)."""
+    ref = PoseRefiner(NEEDLE, [LEFT])
+    r_px = 600.0 * 0.5 * NEEDLE.wire_diameter / 0.1
+    ends = np.array([[0.0, 0.0, 0.1], [0.0, 0.0, 0.1], [0.0, 0.0, 0.1]])
+    dirs = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0],
+                     [math.sin(math.radians(60)), 0.0, math.cos(math.radians(60))]])
+    spread = ref._end_spread(LEFT, LEFT.T_cam_ref, ends, dirs)
+    assert spread == pytest.approx([0.0, r_px, 0.5 * r_px], abs=1e-9)
+    with pytest.raises(NeedleError, match="end_spread_px"):
+        RefineSettings(end_spread_px=0.0)
+
+
 def test_measurements_skip_hidden_points_and_ends():
     """Occluder semantics, point by point: with the base part under the plane (the
     wire drawn whole, so only the plane can drop it), no crest is searched at a hidden
     point, the support counts only the visible points in the images, and the base's end
     is not measured (the tip's is, alone, paired with a phantom base); without the plane
-    both ends are measured, as a pair."""
+    both ends are measured, as a pair. Each end's weight is divided by its variance's
+    growth with its spread (the end seen along the wire, end_spread_px)."""
     feats = _feats([LEFT, RIGHT])
     ref = PoseRefiner(NEEDLE, [LEFT, RIGHT])
     K = ref.points.shape[0]
@@ -289,18 +306,23 @@ def test_measurements_skip_hidden_points_and_ends():
     meas, found, inside = ref._measure(ridges, ends, T_TRUE, 3.0, base_in)
     assert inside == 2 * int(np.count_nonzero(vis))
     assert found == inside
-    for idx, _, _, wt in meas:
+    K_ends = ref.points[[0, K - 1]] @ T_TRUE[:3, :3].T + T_TRUE[:3, 3]
+    dirs = np.stack([-ref.tangents[0], ref.tangents[-1]]) @ T_TRUE[:3, :3].T
+    grow = [1.0 + (ref._end_spread(c, c.T_cam_ref, K_ends, dirs) / ref.s.end_spread_px) ** 2
+            for c in (LEFT, RIGHT)]
+    for (idx, _, _, wt), g in zip(meas, grow, strict=True):
         crest = idx[wt == 1.0]
         assert np.all(vis[crest]) and crest.size == np.count_nonzero(vis)
         assert 0 not in idx
         # the tip's end alone: paired with a base placed by the expected blur bias
         # (so it measures the slide only), at half weight
         assert np.count_nonzero(idx == -1) == 1
-        assert wt[idx == -1][0] == 0.5 * ref.s.end_weight
+        assert wt[idx == -1][0] == pytest.approx(0.5 * ref.s.end_weight / g[1])
     meas, found, inside = ref._measure(ridges, ends, T_TRUE, 3.0)
     assert inside == 2 * K
-    for idx, _, _, wt in meas:                           # both ends, a true pair
-        assert np.count_nonzero(idx == -1) == 1 and wt[idx == -1][0] == ref.s.end_weight
+    for (idx, _, _, wt), g in zip(meas, grow, strict=True):     # both ends, a true pair
+        assert np.count_nonzero(idx == -1) == 1
+        assert wt[idx == -1][0] == pytest.approx(ref.s.end_weight / np.mean(g))
 
 
 def test_bad_occluder_is_refused():
