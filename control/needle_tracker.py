@@ -533,7 +533,13 @@ class TrackSettings:
     on the twin would push the swage first); off only for a needle without a thread. A
     continuing track (updates after a converged one, on the same twin) carries its
     decision while no update shows the thread decisively at the other end; one that
-    does puts the track in doubt until fresh evidence decides again.
+    does puts the track in doubt until fresh evidence decides again. Twins that both
+    read the thread past their own base cannot both be right (their bases lie at the
+    wire's opposite ends): one is slid, its base back inside the wire and its tip out
+    on the thread. Where the two readings are within ``swage_contest`` times each other,
+    the evidence does not decide and the better crest fit (lower RMS) does; the slid
+    twin's arc follows the thread, which leaves the circle. For the same reason a carried
+    decision yields only to ``swage_contest`` times the evidence it was made on.
 
     The motion prior: a needle whose motion is known (held in closed jaws, or standing in
     tissue) is where the last refined pose, moved by that motion, puts it, give or take
@@ -553,11 +559,17 @@ class TrackSettings:
     min_score: float = 0.5
     inject: float = 0.2
     swage_min: float = 8.0
+    swage_contest: float = 1.5
     require_swage: bool = True      # a threaded needle: base and tip must be told apart
     slide_drift: float = math.radians(1.0)
     tilt_drift: float = math.radians(0.5)
     position_drift: float = 0.0001
     prior_gate: float = 16.0
+
+    def __post_init__(self) -> None:
+        if not self.swage_contest >= 1.0:
+            raise NeedleError(f"swage_contest must be >= 1 (a ratio of two twins' thread "
+                              f"evidence), got {self.swage_contest}")
 
 
 @dataclass(frozen=True)
@@ -737,13 +749,25 @@ class NeedleTracker:
             # a twin whose slide the views leave free (its tip hidden) can slide until
             # its base lies on the wire itself, which then reads as the thread: its
             # evidence overturns nothing carried
-            # a carried decision yields to decisive evidence for the other twin, at least
-            # as strong as any it was carried on: with the thread hidden behind the new
-            # jaws at a hand-off (seed 21), the wrong twin read +15 DN where the track
-            # had read +25 on its own side before
-            if twin_swage > swage and (not carried or (
-                    twin_swage >= max(s.swage_min, self._side_evidence)
-                    and self._determined(twin_ref))):
+            # a carried decision yields to decisive evidence for the other twin, clearly
+            # stronger (swage_contest times) than any it was carried on: with the thread
+            # hidden behind the new jaws at a hand-off (seed 21), the wrong twin read
+            # +15 DN where the track had read +25 on its own side before; on trial 20,
+            # lifted in the jaws, the twin slid onto the thread read +9.5 DN after +9.1
+            # on the right side at the first look
+            if carried:
+                take = (twin_swage > swage
+                        and twin_swage >= max(s.swage_min,
+                                              s.swage_contest * self._side_evidence)
+                        and self._determined(twin_ref))
+            elif _contested(swage, twin_swage, s):
+                # both read the thread alike (trial 20's half-circle needle, whose thread
+                # reaches the pad's edge 4 mm on: +8.7 DN for the right pose, +9.3 for
+                # the twin slid 14 deg onto the thread, at 0.07 and 0.11 px RMS)
+                take = twin_ref.ok and twin_ref.rms_px < ref.rms_px
+            else:
+                take = twin_swage > swage
+            if take:
                 ref, pose, swage = twin_ref, twin, twin_swage
                 carried = False
         if ref.ok:
@@ -861,6 +885,14 @@ class NeedleTracker:
         f.t[idx] = pose[:3, 3]
         if f.last is not None:
             f.last = replace(f.last, pose=pose, pose_alt=pose @ _flip4(f.flip))
+
+
+def _contested(swage: float, twin_swage: float, s: TrackSettings) -> bool:
+    """Whether two twins' thread evidence (DN) is not decisive: both read the thread
+    past their own base (at least ``swage_min``), within ``swage_contest`` times each
+    other."""
+    lo, hi = sorted((swage, twin_swage))
+    return lo >= s.swage_min and hi < s.swage_contest * lo
 
 
 def _contradicts(prior: PosePrior, prior_cov: np.ndarray, alone: Refined,

@@ -22,6 +22,8 @@ from oralnav.control.needle_tracker import (
     NeedleFilter,
     NeedleTracker,
     TissuePlane,
+    TrackSettings,
+    _contested,
 )
 from oralnav.sim.needle_cell import NeedleCell
 from oralnav.sim.needle_trials import trial_scene
@@ -407,3 +409,18 @@ def test_the_slide_drifts_only_with_a_motion(driven):
     assert tr._belief[1][2, 2] == pytest.approx(slide + drift)
     tr.predict(driven.push)
     assert tr._belief[1][2, 2] == pytest.approx(slide + 2 * drift)
+
+
+def test_twins_that_both_read_the_thread_alike_are_contested():
+    """Base/tip decision (TrackSettings.swage_contest): two twins' thread evidence
+    contests the decision only when both read the thread past their own base (at least
+    swage_min) within swage_contest times each other (trial 20: +8.7 and +9.3 DN); a
+    reading under swage_min, or one clearly stronger (trial 17: +28 against +10),
+    decides; the ratio must be at least 1."""
+    s = TrackSettings()
+    assert _contested(8.7, 9.3, s) and _contested(9.3, 8.7, s)
+    assert not _contested(28.0, 10.0, s)
+    assert not _contested(9.0, 2.5, s) and not _contested(-9.0, 9.0, s)
+    assert not _contested(8.7, 9.3, replace(s, swage_contest=1.05))
+    with pytest.raises(NeedleError, match="swage_contest"):
+        TrackSettings(swage_contest=0.9)

@@ -371,6 +371,24 @@ def test_a_regrasp_that_holds_nothing_is_caught_by_the_pull():
     assert cell.truth().in_tissue
 
 
+def test_a_twin_slid_onto_a_short_thread_does_not_take_the_track():
+    """Issue 7, base and tip: on trial 20 (ports chosen for the suture) the half-circle
+    needle's thread reaches the pad's edge 4 mm past the swage, so a twin slid 14 deg
+    onto the thread (its base inside the wire, its tip at the pad's edge) reads the
+    thread past its base as strongly as the right pose does (+9.3 against +8.7 DN).
+    Taken on that, the pick-up and hand-off went on with base and tip swapped and the
+    drive pushed the swage through the tissue, undetected. The contested evidence goes
+    to the better crest fit, and a carried decision yields only to clearly stronger
+    evidence (TrackSettings.swage_contest): the track keeps the right twin through the
+    pick-up and the hand-off, and the drive passes (truth)."""
+    cell, proc = _procedure(20, settings=ProcedureSettings(),
+                            **_ports(ProcedureSettings()))
+    for step in ("NG", "NH", "ND"):
+        r = proc.run(step)
+        assert r.ok and r.truth_ok, r
+        assert r.figures["track_error_deg"] < 5.0, r.figures
+
+
 def test_the_driven_tip_seen_end_on_does_not_make_the_tracker_slip():
     """Issue 7, tracking at the drive's end: on trial 120 (ports chosen for the suture)
     the emerging tip points within 8-11 deg of both cameras' lines of sight, so its end
