@@ -1051,6 +1051,25 @@ class NeedleProcedure:
                 return False, why
         return True, ""
 
+    def _leaving_margin(self, arm: str, here: np.ndarray) -> float:
+        """The wrist margin (rad) for the path of ``arm`` leaving ``here``: the plans'
+        ``reach_margin``, or less where the arm already stands nearer a limit (the drive
+        and the back-off run on what the wrist reaches, with no margin): such a path may
+        bend the wrist as far as it stands, not further, while its goal keeps the full
+        margin. Held to the full margin, every path from the drive's end failed its first
+        pose on 8 of session 20's 14 regrasps refused out of reach."""
+        m = self.s.reach_margin
+        if self.cell.reachable(arm, here, m)[0]:
+            return m
+        lo, hi = 0.0, m
+        for _ in range(10):           # bisection to m / 1024 (under 0.01 deg)
+            mid = 0.5 * (lo + hi)
+            if self.cell.reachable(arm, here, mid)[0]:
+                lo = mid
+            else:
+                hi = mid
+        return lo
+
     def _lowest(self, poses: Sequence[np.ndarray], G_TN: np.ndarray) -> float:
         """The lowest height (m) over the tissue plane of the needle held at ``G_TN`` by
         a gripper at any of ``poses`` (its ``T_ref_T``)."""
@@ -1556,11 +1575,14 @@ class NeedleProcedure:
         last = ""
         for arm in order:
             here = self.cell.gripper_pose(arm)
+            leave = self._leaving_margin(arm, here)
             for g in grasps:
                 # the approach from where the arm is too: a straight path between two
                 # poses the wrist reaches may bend it past its limits
                 approach = _back_off(g.T_ref_T, s.approach)
-                ok, why = self._reach(arm, [g.T_ref_T, *_path(here, approach)])
+                ok, why = self._reach(arm, [g.T_ref_T, approach])
+                if ok:
+                    ok, why = self._reach(arm, _path(here, approach), leave)
                 if ok:
                     try:
                         pull = pull_poses(np.eye(4), self.G_CS, T_N, g.G_TN, self.needle,
@@ -1665,10 +1687,12 @@ class NeedleProcedure:
         here = self.cell.gripper_pose(arm)
         others = [self.cell.gripper_pose(a) for a in self.arms if a != arm]
         G_NT = invert(G_TN)
+        leave = self._leaving_margin(arm, here)
         moves = []
         for T_s, turn, _ in _turned_and_raised(T_N, self.normal, s.show_heights):
             T_g = T_s @ G_NT
-            if not self._reach(arm, _path(here, T_g))[0]:
+            if not (self._reach(arm, [T_g])[0]
+                    and self._reach(arm, _path(here, T_g), leave)[0]):
                 continue
             if self._lowest(_path(here, T_g, 32), G_TN) < s.carry_clearance:
                 continue

@@ -389,6 +389,35 @@ def test_a_twin_slid_onto_a_short_thread_does_not_take_the_track():
         assert r.figures["track_error_deg"] < 5.0, r.figures
 
 
+def test_a_path_from_a_wrist_near_its_limit_may_bend_it_as_far_as_it_stands():
+    """Issue 7, the regrasp's reach: on trial 87 (ports chosen for the suture) the drive
+    ends, as planned with no margin, with the driver's wrist yawed within the plans'
+    reach_margin of its limit (-79 deg of +-80). Held to the full margin, every path
+    from there failed at its first pose and the regrasp refused out of reach. A path
+    leaving a pose may bend the wrist as far as it stands (the margin the pose itself
+    keeps, by bisection), the goals keep the full margin: the regrasp passes (truth)."""
+    settings = ProcedureSettings()
+    cell, proc = _procedure(87, settings=settings, **_ports(settings))
+    for step in ("NG", "NH", "ND"):
+        r = proc.run(step)
+        assert r.ok and r.truth_ok, r
+    seen = []
+    leaving = proc._leaving_margin
+    proc._leaving_margin = lambda arm, here: (seen.append((arm, here)), leaving(arm, here))[1]
+    r = proc.run("NR")
+    assert r.ok and r.truth_ok, r
+    # the driver, backed off the needle, leaves from within the margin's band
+    arm, here = seen[0]
+    assert arm == proc.driver and cell.reachable(arm, here, 0.0)[0]
+    assert not cell.reachable(arm, here, settings.reach_margin)[0]
+    leave = leaving(arm, here)
+    assert 0.0 < leave < settings.reach_margin
+    assert cell.reachable(arm, here, leave)[0]
+    assert not cell.reachable(arm, here, leave + 0.01 * settings.reach_margin)[0]
+    other = next(a for a in proc.arms if a != arm)       # parked, well inside its range
+    assert leaving(other, cell.gripper_pose(other)) == settings.reach_margin
+
+
 def test_the_driven_tip_seen_end_on_does_not_make_the_tracker_slip():
     """Issue 7, tracking at the drive's end: on trial 120 (ports chosen for the suture)
     the emerging tip points within 8-11 deg of both cameras' lines of sight, so its end
