@@ -212,15 +212,20 @@ class RefineSettings:
     # 1 + (spread / end_spread_px)^2 (fitted on 1358 ends rendered in 20 needle trials:
     # RMS 0.95 px under 1.5 px of spread, 1.9 px at 2.5-3, 3.4 px at 4-6)
     end_spread_px: float = 1.5
+    # crest points where the wire runs within this angle of the line of sight are not
+    # searched: the wire's image there is its cross-section
+    min_sight_angle: float = math.radians(25.0)
 
     def __post_init__(self) -> None:
         if self.points < 8 or not self.search_px or min(self.search_px) <= self.step_px:
             raise NeedleError("refinement needs >= 8 points and search windows wider "
                               "than the step")
         if not (self.step_px > 0 and self.iterations >= 1 and self.tukey_px > 0
-                and self.polish_tukey_px > 0 and self.end_spread_px > 0):
+                and self.polish_tukey_px > 0 and self.end_spread_px > 0
+                and 0.0 <= self.min_sight_angle < 0.5 * math.pi):
             raise NeedleError("step_px > 0, iterations >= 1, tukey_px > 0, "
-                              "polish_tukey_px > 0 and end_spread_px > 0 are required")
+                              "polish_tukey_px > 0, end_spread_px > 0 and 0 <= "
+                              "min_sight_angle < pi/2 are required")
 
 
 @dataclass(frozen=True)
@@ -433,6 +438,15 @@ class PoseRefiner:
             found &= width <= s.max_width_ratio * float(np.median(width[found])) + 1.0
         return np.where(found, 0.5 * (xl + xr), np.nan), found
 
+    def _across_sight(self, T_cam_ref: np.ndarray, pts: np.ndarray, T: np.ndarray
+                      ) -> np.ndarray:
+        """Per sample point (``pts``, reference frame, of the needle at ``T``): whether
+        the wire there runs at least ``min_sight_angle`` off the camera's line of sight."""
+        p = pts @ T_cam_ref[:3, :3].T + T_cam_ref[:3, 3]
+        t = self.tangents @ (T_cam_ref[:3, :3] @ T[:3, :3]).T
+        cos = np.abs(np.einsum("ij,ij->i", t, p)) / np.linalg.norm(p, axis=1)
+        return cos <= math.cos(self.s.min_sight_angle)
+
     def _end_spread(self, cam: CameraModel, T_cam_ref: np.ndarray, end_pts: np.ndarray,
                     end_dirs: np.ndarray) -> np.ndarray:
         """Per end (base, tip; points and outward unit tangents ``(2, 3)``, reference
@@ -504,7 +518,13 @@ class PoseRefiner:
                 hidden = hidden_by(tools, cam, uv,
                                    pts @ cam.T_cam_ref[2, :3] + cam.T_cam_ref[2, 3])
                 vis = ~hidden if vis is None else vis & ~hidden
-            d, found = self._peaks(ridge, uv, n, half, vis)
+            # a point where the wire runs nearly along the line of sight shows its
+            # cross-section, a blob the crest search across the arc cannot place (the
+            # base standing out of the entry toward the cameras curls into a hook a few
+            # pixels wide): neither searched nor counted as missing
+            crest = self._across_sight(Tc, pts, T) if vis is None \
+                else vis & self._across_sight(Tc, pts, T)
+            d, found = self._peaks(ridge, uv, n, half, crest)
             found &= np.all(np.isfinite(n), axis=1)
             idx = [np.nonzero(found)[0]]
             # rows are 4 wide so the end pair (two directions, two targets) fits
@@ -556,8 +576,7 @@ class PoseRefiner:
             out.append((np.concatenate(idx), np.concatenate(dirs), np.concatenate(tgt),
                         np.concatenate(wts)))
             found_n += int(np.count_nonzero(found))
-            in_img = cam.in_image(uv)
-            inside += int(np.count_nonzero(in_img if vis is None else in_img & vis))
+            inside += int(np.count_nonzero(cam.in_image(uv) & crest))
         return out, found_n, inside
 
     def refine(self, features: Sequence[NeedleFeatures], T: np.ndarray, *,

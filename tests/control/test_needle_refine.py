@@ -285,6 +285,32 @@ def test_an_end_seen_along_the_wire_spreads_by_its_radius():
         RefineSettings(end_spread_px=0.0)
 
 
+def test_crest_points_along_the_line_of_sight_are_not_searched():
+    """Crest points seen along the wire (RefineSettings.min_sight_angle): where the wire
+    runs within 25 deg of the line of sight its image is its cross-section, so such
+    points are neither searched nor counted. A needle seen face-on keeps every point;
+    one whose plane holds the line of sight loses the run of points where its tangent
+    turns toward the camera, and only those; ``_measure`` counts only the rest."""
+    ref = PoseRefiner(NEEDLE, [LEFT])
+    face = transform_from_euler([0.0, 0.0, 0.1], [0, 0, 0])
+    pts = ref.points @ face[:3, :3].T + face[:3, 3]
+    assert ref._across_sight(LEFT.T_cam_ref, pts, face).all()
+    edge = transform_from_euler([0.0, 0.0, 0.1], [0, 90, 0])   # N's z along the camera's x
+    pts = ref.points @ edge[:3, :3].T + edge[:3, 3]
+    keep = ref._across_sight(LEFT.T_cam_ref, pts, edge)
+    t = ref.tangents @ edge[:3, :3].T
+    angle = np.degrees(np.arccos(np.abs(np.einsum("ij,ij->i", t, pts))
+                                 / np.linalg.norm(pts, axis=1)))
+    assert 0 < np.count_nonzero(~keep) < keep.size
+    assert np.array_equal(keep, angle >= 25.0)
+    runs = np.flatnonzero(np.diff(keep.astype(int)))
+    assert runs.size <= 2                                   # one run of dropped points
+    ridge = np.zeros((LEFT.height, LEFT.width), np.float32)
+    _, _, inside = ref._measure([ridge], [ridge], edge, 3.0)
+    uv = LEFT.project_from(LEFT.T_cam_ref, pts)
+    assert inside == np.count_nonzero(LEFT.in_image(uv) & keep)
+
+
 def test_measurements_skip_hidden_points_and_ends():
     """Occluder semantics, point by point: with the base part under the plane (the
     wire drawn whole, so only the plane can drop it), no crest is searched at a hidden
