@@ -214,7 +214,7 @@ class RefineSettings:
     end_spread_px: float = 1.5
     # crest points where the wire runs within this angle of the line of sight are not
     # searched: the wire's image there is its cross-section
-    min_sight_angle: float = math.radians(25.0)
+    min_sight_angle: float = math.radians(15.0)
 
     def __post_init__(self) -> None:
         if self.points < 8 or not self.search_px or min(self.search_px) <= self.step_px:

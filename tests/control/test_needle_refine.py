@@ -287,7 +287,7 @@ def test_an_end_seen_along_the_wire_spreads_by_its_radius():
 
 def test_crest_points_along_the_line_of_sight_are_not_searched():
     """Crest points seen along the wire (RefineSettings.min_sight_angle): where the wire
-    runs within 25 deg of the line of sight its image is its cross-section, so such
+    runs within 15 deg of the line of sight its image is its cross-section, so such
     points are neither searched nor counted. A needle seen face-on keeps every point;
     one whose plane holds the line of sight loses the run of points where its tangent
     turns toward the camera, and only those; ``_measure`` counts only the rest."""
@@ -302,7 +302,7 @@ def test_crest_points_along_the_line_of_sight_are_not_searched():
     angle = np.degrees(np.arccos(np.abs(np.einsum("ij,ij->i", t, pts))
                                  / np.linalg.norm(pts, axis=1)))
     assert 0 < np.count_nonzero(~keep) < keep.size
-    assert np.array_equal(keep, angle >= 25.0)
+    assert np.array_equal(keep, angle >= np.degrees(ref.s.min_sight_angle))
     runs = np.flatnonzero(np.diff(keep.astype(int)))
     assert runs.size <= 2                                   # one run of dropped points
     ridge = np.zeros((LEFT.height, LEFT.width), np.float32)
