@@ -126,8 +126,9 @@ class ProcedureSettings:
     square to the camera's line of sight where the arm reaches: the tracked needle must
     follow within ``hold_tolerance``); ``pull_tolerance``: how near where the pull took
     the jaws the needle must be seen after it (the regrasp's hold is shown by the pull),
-    looked at where the pulled needle, turned about its centre and raised by one of
-    ``show_heights``, shows to the cameras (:meth:`NeedleProcedure._show_pose`: first
+    looked at where the pulled needle, turned about its centre, raised by one of
+    ``show_heights`` and moved by one of ``show_shifts`` toward where the reference camera
+    looks on the tissue, shows to the cameras (:meth:`NeedleProcedure._show_pose`: first
     where the view passes with ``strict_view_angle`` less face-on angle and
     ``strict_visible`` more of the needle in view);
     ``follow_ratio``: after a long motion a needle this share of the motion's length
@@ -176,6 +177,7 @@ class ProcedureSettings:
     swage_clearance: float = 0.002
     pull_lift: float = 0.010
     show_heights: tuple[float, ...] = (0.0, 0.005, 0.010)
+    show_shifts: tuple[float, ...] = (0.0, 0.010, 0.020)
     strict_view_angle: float = math.radians(15.0)
     strict_visible: float = 0.1
     approach: float = 0.005
@@ -266,6 +268,10 @@ class ProcedureSettings:
                                             for h in self.show_heights):
             raise NeedleError(f"needle procedure: show_heights needs values >= 0, got "
                               f"{self.show_heights!r}")
+        if not self.show_shifts or not all(math.isfinite(d) and d >= 0
+                                           for d in self.show_shifts):
+            raise NeedleError(f"needle procedure: show_shifts needs values >= 0 (m), got "
+                              f"{self.show_shifts!r}")
 
 
 @dataclass
@@ -509,6 +515,26 @@ def _pickup_phis(needle: Needle, s: ProcedureSettings, phi_B: float) -> np.ndarr
     return np.concatenate([np.linspace(a, b, 7) for a, b in free if b >= a] or [[]])
 
 
+def _shifted(T: np.ndarray, normal: np.ndarray, toward: np.ndarray,
+             shifts: Sequence[float]) -> Iterator[np.ndarray]:
+    """The pose ``T`` moved in the plane square to ``normal`` toward ``toward`` (3,) by
+    each of ``shifts`` (m), no further than all the way there; a shift that comes out the
+    same as an earlier one is not repeated."""
+    d = toward - T[:3, 3]
+    d -= float(d @ normal) * normal
+    far = float(np.linalg.norm(d))
+    done: set[float] = set()
+    for shift in shifts:
+        shift = min(shift, far)
+        if shift in done:
+            continue
+        done.add(shift)
+        moved = T.copy()
+        if shift > 0:
+            moved[:3, 3] += shift / far * d
+        yield moved
+
+
 def _handoff_poses(drive: Drive, G_TN_B: np.ndarray, normal: np.ndarray, s: ProcedureSettings,
                    reach_all: Callable[[np.ndarray], np.ndarray], toward: np.ndarray
                    ) -> list[tuple[np.ndarray, np.ndarray, float, float]]:
@@ -519,19 +545,8 @@ def _handoff_poses(drive: Drive, G_TN_B: np.ndarray, normal: np.ndarray, s: Proc
     turned about the needle's centre, the least shift, then the least turn first.
     Items: ``(T_ref_N, driver's T_ref_T, turn (rad), height (m))``."""
     start = drive.G_PS @ drive.G_SN[0]
-    d = toward - start[:3, 3]
-    d -= float(d @ normal) * normal
-    far = float(np.linalg.norm(d))
     items: list[tuple[np.ndarray, float, float]] = []
-    done: set[float] = set()
-    for shift in s.handoff_shifts:
-        shift = min(shift, far)
-        if shift in done:
-            continue
-        done.add(shift)
-        moved = start.copy()
-        if shift > 0:
-            moved[:3, 3] += shift / far * d
+    for moved in _shifted(start, normal, toward, s.handoff_shifts):
         items += _turned_and_raised(moved, normal, s.handoff_heights)
     T_B = np.stack([T for T, _, _ in items]) @ invert(G_TN_B)
     ok = reach_all(T_B)
@@ -1674,8 +1689,10 @@ class NeedleProcedure:
     def _show_pose(self, arm: str, T_N: np.ndarray, G_TN: np.ndarray
                    ) -> tuple[np.ndarray, float] | None:
         """Where ``arm``, holding the pulled needle (at ``T_N``, ``ref``) with ``G_TN``,
-        shows it to the cameras: the needle turned about its centre as little as will
-        do (:data:`_HANDOFF_TURNS`) and raised by one of ``show_heights``, reached along
+        shows it to the cameras: the needle moved toward the middle of the reference
+        camera's view of the tissue by one of ``show_shifts`` (the least first), turned
+        about its centre as little as will do (:data:`_HANDOFF_TURNS`) and raised by one
+        of ``show_heights``, reached along
         the straight path from where the arm is, the needle ``carry_clearance`` off the
         tissue all the way. The views (:meth:`_view`, past both grippers) are asked in
         tiers, the first that any candidate passes deciding: with room to spare
@@ -1688,8 +1705,12 @@ class NeedleProcedure:
         others = [self.cell.gripper_pose(a) for a in self.arms if a != arm]
         G_NT = invert(G_TN)
         leave = self._leaving_margin(arm, here)
+        toward = self.views.aim(self.incision.mean(axis=0))
         moves = []
-        for T_s, turn, _ in _turned_and_raised(T_N, self.normal, s.show_heights):
+        for T_s, turn, _ in (item for T_m in _shifted(T_N, self.normal, toward,
+                                                       s.show_shifts)
+                             for item in _turned_and_raised(T_m, self.normal,
+                                                            s.show_heights)):
             T_g = T_s @ G_NT
             if not (self._reach(arm, [T_g])[0]
                     and self._reach(arm, _path(here, T_g), leave)[0]):

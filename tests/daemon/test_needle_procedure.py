@@ -232,6 +232,10 @@ def test_bad_construction_is_refused():
         ProcedureSettings(suture_at=1.5)
     with pytest.raises(NeedleError, match="show_heights"):
         ProcedureSettings(show_heights=(0.0, -0.005))
+    with pytest.raises(NeedleError, match="show_shifts"):
+        ProcedureSettings(show_shifts=())
+    with pytest.raises(NeedleError, match="show_shifts"):
+        ProcedureSettings(show_shifts=(0.0, math.nan))
     with pytest.raises(NeedleError, match="strict_visible"):
         ProcedureSettings(strict_visible=-0.1)
     with pytest.raises(NeedleError, match="handoff_shifts"):
@@ -430,6 +434,32 @@ def test_the_driven_tip_seen_end_on_does_not_make_the_tracker_slip():
     cell, proc = _procedure(120, settings=ProcedureSettings(),
                             **_ports(ProcedureSettings()))
     for step in ("NG", "NH", "ND", "NR"):
+        r = proc.run(step)
+        assert r.ok and r.truth_ok, r
+
+
+def test_the_pulled_needle_is_moved_toward_the_views_middle_to_be_seen():
+    """Issue 7, the pull's look: on trial 49 (ports chosen for the suture) no turn or
+    rise of the pulled needle that the arm reaches lets both cameras see it (edge-on,
+    off the tissue or out of view), so it was looked at where the pull left it, half
+    over the dark beyond the pad, and the track was lost. Moved toward where the
+    reference camera looks on the tissue (show_shifts), it is shown: without the
+    shifts no show pose exists, with them one does, and NP passes (truth)."""
+    settings = ProcedureSettings()
+    cell, proc = _procedure(49, settings=settings, **_ports(settings))
+    for step in ("NG", "NH", "ND", "NR"):
+        r = proc.run(step)
+        assert r.ok and r.truth_ok, r
+    arm = proc.holder
+    pull = proc._pull[0]
+    for k, T in enumerate(pull.G_PT):
+        proc._move(arm, T, f"pull pose {k + 1}")
+    proc.s = replace(settings, show_shifts=(0.0,))
+    assert proc._show_pose(arm, pull.G_CN[-1], proc.G_TN) is None
+    proc.s = settings
+    assert proc._show_pose(arm, pull.G_CN[-1], proc.G_TN) is not None
+    cell, proc = _procedure(49, settings=settings, **_ports(settings))
+    for step in ("NG", "NH", "ND", "NR", "NP"):
         r = proc.run(step)
         assert r.ok and r.truth_ok, r
 
