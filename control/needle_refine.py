@@ -438,13 +438,22 @@ class PoseRefiner:
             found &= width <= s.max_width_ratio * float(np.median(width[found])) + 1.0
         return np.where(found, 0.5 * (xl + xr), np.nan), found
 
+    @staticmethod
+    def _sight(T_cam_ref: np.ndarray, pts: np.ndarray, dirs: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Per point (``pts`` with unit directions ``dirs``, (n, 3), reference frame):
+        the |cosine| between the direction and the camera's line of sight to the point,
+        and the point's depth in the camera (m)."""
+        p = pts @ T_cam_ref[:3, :3].T + T_cam_ref[:3, 3]
+        d = dirs @ T_cam_ref[:3, :3].T
+        cos = np.abs(np.einsum("ij,ij->i", d, p)) / np.linalg.norm(p, axis=1)
+        return cos, p[:, 2]
+
     def _across_sight(self, T_cam_ref: np.ndarray, pts: np.ndarray, T: np.ndarray
                       ) -> np.ndarray:
         """Per sample point (``pts``, reference frame, of the needle at ``T``): whether
         the wire there runs at least ``min_sight_angle`` off the camera's line of sight."""
-        p = pts @ T_cam_ref[:3, :3].T + T_cam_ref[:3, 3]
-        t = self.tangents @ (T_cam_ref[:3, :3] @ T[:3, :3]).T
-        cos = np.abs(np.einsum("ij,ij->i", t, p)) / np.linalg.norm(p, axis=1)
+        cos, _ = self._sight(T_cam_ref, pts, self.tangents @ T[:3, :3].T)
         return cos <= math.cos(self.s.min_sight_angle)
 
     def _end_spread(self, cam: CameraModel, T_cam_ref: np.ndarray, end_pts: np.ndarray,
@@ -454,11 +463,9 @@ class PoseRefiner:
         wire's radius in pixels times the cosine between the wire and the line of sight.
         Near 0 for an end seen side-on; the wire's radius for one pointing at the camera,
         whose half-level point then says little about how far the wire reaches."""
-        p = end_pts @ T_cam_ref[:3, :3].T + T_cam_ref[:3, 3]
-        d = end_dirs @ T_cam_ref[:3, :3].T
-        depth = np.maximum(p[:, 2], 1e-6)
-        cos = np.abs(np.einsum("ij,ij->i", d, p)) / np.linalg.norm(p, axis=1)
-        return float(cam.K[0, 0]) * 0.5 * self.needle.wire_diameter / depth * cos
+        cos, depth = self._sight(T_cam_ref, end_pts, end_dirs)
+        return float(cam.K[0, 0]) * 0.5 * self.needle.wire_diameter \
+            / np.maximum(depth, 1e-6) * cos
 
     def _end(self, ridge: np.ndarray, uv: np.ndarray, t: np.ndarray, half: float) -> float:
         """Offset (px, along the outward image tangent ``t``) of the wire's end from the
@@ -515,15 +522,15 @@ class PoseRefiner:
                                                        strict=True):
             vis = seen
             if tools:
-                hidden = hidden_by(tools, cam, uv,
-                                   pts @ cam.T_cam_ref[2, :3] + cam.T_cam_ref[2, 3])
+                hidden = hidden_by(tools, cam, uv, pts @ Tc[2, :3] + Tc[2, 3])
                 vis = ~hidden if vis is None else vis & ~hidden
             # a point where the wire runs nearly along the line of sight shows its
             # cross-section, a blob the crest search across the arc cannot place (the
             # base standing out of the entry toward the cameras curls into a hook a few
             # pixels wide): neither searched nor counted as missing
-            crest = self._across_sight(Tc, pts, T) if vis is None \
-                else vis & self._across_sight(Tc, pts, T)
+            crest = self._across_sight(Tc, pts, T)
+            if vis is not None:
+                crest &= vis
             d, found = self._peaks(ridge, uv, n, half, crest)
             found &= np.all(np.isfinite(n), axis=1)
             idx = [np.nonzero(found)[0]]

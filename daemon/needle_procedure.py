@@ -1706,11 +1706,10 @@ class NeedleProcedure:
         G_NT = invert(G_TN)
         leave = self._leaving_margin(arm, here)
         toward = self.views.aim(self.incision.mean(axis=0))
+        candidates = [item for T_m in _shifted(T_N, self.normal, toward, s.show_shifts)
+                      for item in _turned_and_raised(T_m, self.normal, s.show_heights)]
         moves = []
-        for T_s, turn, _ in (item for T_m in _shifted(T_N, self.normal, toward,
-                                                       s.show_shifts)
-                             for item in _turned_and_raised(T_m, self.normal,
-                                                            s.show_heights)):
+        for T_s, turn, _ in candidates:
             T_g = T_s @ G_NT
             if not (self._reach(arm, [T_g])[0]
                     and self._reach(arm, _path(here, T_g), leave)[0]):
