@@ -177,6 +177,49 @@ def hidden_by(tools: Sequence[ToolCylinder], cam: CameraModel, uv: np.ndarray,
     return hidden
 
 
+def edge_band(cam: CameraModel, outline: np.ndarray, width_px: float,
+              per_edge: int = 64) -> np.ndarray:
+    """The pixels of ``cam``'s image within ``width_px`` of the tissue surface's edge
+    (bool, image-sized): ``outline`` (k, 3, reference frame, m) is the surface's
+    corners in order, each side sampled ``per_edge`` times so that lens distortion
+    bends it as it bends the image. Across the edge the backdrop steps from tissue to
+    what lies beyond: there the features see neither a wire darker than the tissue nor
+    one brighter than the dark, and a wire crossing the band seems to stop at it."""
+    o = np.asarray(outline, dtype=float)
+    if o.ndim != 2 or o.shape[1] != 3 or len(o) < 3 or not np.all(np.isfinite(o)):
+        raise NeedleError(f"the surface outline must be >= 3 finite 3-D points, "
+                          f"got shape {o.shape}")
+    if not width_px >= 0:
+        raise NeedleError(f"edge band width must be >= 0 px, got {width_px}")
+    f = np.linspace(0.0, 1.0, per_edge, endpoint=False)[:, None]
+    ring = np.concatenate([a + f * (b - a) for a, b in zip(o, np.roll(o, -1, axis=0),
+                                                           strict=True)])
+    uv = cam.project_from(cam.T_cam_ref, ring)
+    uv = uv[np.all(np.isfinite(uv), axis=1)]
+    inside = np.zeros((cam.height, cam.width), np.uint8)
+    if len(uv) >= 3:
+        # sub-pixel vertices (4 fractional bits), so the band is centred on the edge
+        cv2.fillPoly(inside, [np.round(uv * 16.0).astype(np.int32)], 1, shift=4)
+    # distance of every pixel to the nearest pixel on the other side of the edge, less
+    # the half pixel from that pixel's centre to the edge between them
+    d_in = cv2.distanceTransform(inside, cv2.DIST_L2, cv2.DIST_MASK_5)
+    d_out = cv2.distanceTransform(1 - inside, cv2.DIST_L2, cv2.DIST_MASK_5)
+    return np.maximum(d_in, d_out) - 0.5 < width_px
+
+
+def _at(mask: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """``mask`` (bool image) at the pixels nearest ``uv`` (k, 2); False outside the
+    image and where ``uv`` is not finite."""
+    ok = np.all(np.isfinite(uv), axis=1)
+    px = np.zeros((len(uv), 2), dtype=int)
+    px[ok] = np.round(uv[ok]).astype(int)
+    h, w = mask.shape
+    ok &= (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+    out = np.zeros(len(uv), dtype=bool)
+    out[ok] = mask[px[ok, 1], px[ok, 0]]
+    return out
+
+
 @dataclass(frozen=True)
 class RefineSettings:
     """Refinement settings. Pixels px.
@@ -215,6 +258,12 @@ class RefineSettings:
     # crest points where the wire runs within this angle of the line of sight are not
     # searched: the wire's image there is its cross-section
     min_sight_angle: float = math.radians(15.0)
+    # crest points and ends within this distance of the tissue surface's edge in a view
+    # are not measured (:func:`edge_band`): at the true poses of 8 regrasps whose tips
+    # stood over the edge, 26-61 % of the crest points within 3 px of it found the wire
+    # (88-96 % at 3-6 px, all beyond 6), and every tip 5-7.5 px beyond the edge was
+    # read as ending on it
+    edge_band_px: float = 6.0
 
     def __post_init__(self) -> None:
         if self.points < 8 or not self.search_px or min(self.search_px) <= self.step_px:
@@ -222,10 +271,11 @@ class RefineSettings:
                               "than the step")
         if not (self.step_px > 0 and self.iterations >= 1 and self.tukey_px > 0
                 and self.polish_tukey_px > 0 and self.end_spread_px > 0
-                and 0.0 <= self.min_sight_angle < 0.5 * math.pi):
+                and 0.0 <= self.min_sight_angle < 0.5 * math.pi
+                and self.edge_band_px >= 0):
             raise NeedleError("step_px > 0, iterations >= 1, tukey_px > 0, "
-                              "polish_tukey_px > 0, end_spread_px > 0 and 0 <= "
-                              "min_sight_angle < pi/2 are required")
+                              "polish_tukey_px > 0, end_spread_px > 0, 0 <= "
+                              "min_sight_angle < pi/2 and edge_band_px >= 0 are required")
 
 
 @dataclass(frozen=True)
@@ -361,6 +411,12 @@ class PoseRefiner:
         self._steps = [_perturb(np.eye(4), _JAC_EPS * e) for e in np.eye(6)]
         self._windows: dict[float, tuple[np.ndarray, np.ndarray]] = {}
 
+    def edge_bands(self, outline: np.ndarray) -> list[np.ndarray]:
+        """Per camera, the tissue surface's edge band (:func:`edge_band`, of
+        ``edge_band_px``) for :meth:`refine`'s ``blind``; ``outline`` (k, 3, reference
+        frame, m): the surface's corners in order."""
+        return [edge_band(cam, outline, self.s.edge_band_px) for cam in self.cameras]
+
     def _project(self, T: np.ndarray, pts: np.ndarray) -> list[np.ndarray]:
         return [cam.project_from(Tc @ T, pts) for cam, Tc in zip(self.cameras, self.T_cam_ref,
                                                                   strict=True)]
@@ -473,9 +529,7 @@ class PoseRefiner:
         NaN when it does not fall inside the window (the end hidden or continued by the
         thread) or no wire is there."""
         s = self.s
-        # the window does not shrink with the crest's: the half-level point sits a couple
-        # of pixels out of a flat end (blur), on both ends alike
-        half = max(half, 6.0)
+        half = _end_half(half)
         offs = np.arange(-2.0 * half, 2.0 * half + 1e-9, s.step_px)
         xy = (uv[None, :] + offs[:, None] * t[None, :]).astype(np.float32)
         prof = cv2.remap(ridge, xy[:, 0:1], xy[:, 1:2], cv2.INTER_LINEAR,
@@ -494,9 +548,21 @@ class PoseRefiner:
         a, b = prof[k - 1], prof[k]
         return float(offs[k - 1] + s.step_px * (a - 0.5 * on) / max(a - b, 1e-9))
 
+    @staticmethod
+    def _end_clear(blind: np.ndarray | None, uv: np.ndarray, t: np.ndarray,
+                   half: float) -> bool:
+        """Whether the end search's window at ``uv`` (px) along the outward tangent
+        ``t`` (:meth:`_end`) stays off the ``blind`` pixels (none: clear)."""
+        if blind is None:
+            return True
+        h = _end_half(half)
+        offs = np.arange(-2.0 * h, 2.0 * h + 1e-9, 1.0)
+        return not np.any(_at(blind, uv[None, :] + offs[:, None] * t[None, :]))
+
     def _measure(self, ridges: list[np.ndarray], ends: list[np.ndarray], T: np.ndarray,
                  half: float, occluder: TissuePlane | None = None, tip_only: bool = False,
-                 tools: Sequence[ToolCylinder] = ()
+                 tools: Sequence[ToolCylinder] = (),
+                 blind: Sequence[np.ndarray | None] | None = None
                  ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
                             int, int]:
         """Per camera, the measurements ``(point index, image direction, target pixel,
@@ -504,9 +570,10 @@ class PoseRefiner:
         end along the tangent at the base and the tip (weighted as ``end_weight`` points:
         sliding along itself is the one motion of an arc that its crest cannot see).
         Also the number of sample points that found the crest and of those in the
-        images. Points under ``occluder`` or behind one of ``tools`` (in that view) are
-        not searched and not counted in the images; a hidden end gives no end
-        measurement."""
+        images. Points under ``occluder``, behind one of ``tools`` or on a ``blind``
+        pixel (per camera; see :meth:`refine`) in that view are not searched and not
+        counted in the images; a hidden end, or one whose search reaches a blind pixel,
+        gives no end measurement."""
         s = self.s
         K = self.points.shape[0]
         pts = self.points @ T[:3, :3].T + T[:3, 3]
@@ -517,13 +584,16 @@ class PoseRefiner:
         end_pts = pts[[0, K - 1]]
         end_dirs = np.stack([-self.tangents[0], self.tangents[-1]]) @ T[:3, :3].T
         out, found_n, inside = [], 0, 0
-        for ridge, endmap, (uv, n, tg), cam, Tc in zip(ridges, ends, self._geometry(T),
-                                                       self.cameras, self.T_cam_ref,
-                                                       strict=True):
+        blinds = [None] * len(self.cameras) if blind is None else blind
+        for ridge, endmap, (uv, n, tg), cam, Tc, bl in zip(ridges, ends, self._geometry(T),
+                                                           self.cameras, self.T_cam_ref,
+                                                           blinds, strict=True):
             vis = seen
             if tools:
                 hidden = hidden_by(tools, cam, uv, pts @ Tc[2, :3] + Tc[2, 3])
                 vis = ~hidden if vis is None else vis & ~hidden
+            if bl is not None:
+                vis = ~_at(bl, uv) if vis is None else vis & ~_at(bl, uv)
             # a point where the wire runs nearly along the line of sight shows its
             # cross-section, a blob the crest search across the arc cannot place (the
             # base standing out of the entry toward the cameras curls into a hook a few
@@ -546,9 +616,11 @@ class PoseRefiner:
                 # an end in the tissue: the visible wire stops at the surface, an end
                 # that is not the needle's
                 ob = self._end(endmap, uv[0], tg[0], half) \
-                    if (vis is None or vis[0]) and not tip_only else math.nan
-                ot = self._end(endmap, uv[K - 1], tg[1], half) if vis is None or vis[K - 1] \
-                    else math.nan
+                    if (vis is None or vis[0]) and not tip_only \
+                    and self._end_clear(bl, uv[0], tg[0], half) else math.nan
+                ot = self._end(endmap, uv[K - 1], tg[1], half) \
+                    if (vis is None or vis[K - 1]) \
+                    and self._end_clear(bl, uv[K - 1], tg[1], half) else math.nan
                 b0 = s.end_bias_px
                 # each end's variance, relative to a clean end's (see end_spread_px)
                 grow = 1.0 + (self._end_spread(cam, Tc, end_pts, end_dirs)
@@ -590,7 +662,8 @@ class PoseRefiner:
                occluder: TissuePlane | None = None, tip_only: bool = False,
                tools: Sequence[ToolCylinder] = (),
                prior: PosePrior | None = None,
-               search_px: Sequence[float] | None = None) -> Refined:
+               search_px: Sequence[float] | None = None,
+               blind: Sequence[np.ndarray | None] | None = None) -> Refined:
         """Refine ``T`` (``T_ref_N``) on the cameras' features (:func:`.needle_features.
         feature_maps`, one per camera, same order): the crest on ``ridge``, the ends on
         ``ends``. ``occluder``: the tissue's surface when the needle may be in it (what
@@ -606,7 +679,10 @@ class PoseRefiner:
         slide while both ends are hidden, the depth a short baseline barely measures).
         Ignored when the prior's pose is the other twin (turned more than 90 deg from
         ``T``). ``search_px``: the rounds' search windows in place of the settings' (a
-        start already on the wire needs no wide capture rounds)."""
+        start already on the wire needs no wide capture rounds). ``blind``: per camera,
+        the pixels whose features cannot show the wire (bool, image-sized, or ``None``:
+        none), such as the tissue surface's edge band (:meth:`edge_bands`): the wire
+        is neither looked for nor missed there, and no end is read across them."""
         s = self.s
         windows = tuple(s.search_px if search_px is None else search_px)
         if not windows or min(windows) <= s.step_px:
@@ -627,6 +703,16 @@ class PoseRefiner:
                     raise NeedleError(f"camera {cam.name!r}: {what} image is "
                                       f"{getattr(f, what).shape}, the camera is "
                                       f"{cam.height} x {cam.width}")
+        if blind is not None:
+            blind = list(blind)
+            if len(blind) != len(self.cameras):
+                raise NeedleError(f"expected {len(self.cameras)} blind masks (one per "
+                                  f"camera, or None), got {len(blind)}")
+            for m, cam in zip(blind, self.cameras, strict=True):
+                if m is not None and (m.dtype != bool or m.shape != (cam.height, cam.width)):
+                    raise NeedleError(f"camera {cam.name!r}: the blind mask must be a bool "
+                                      f"{cam.height} x {cam.width} image, got {m.dtype} "
+                                      f"{m.shape}")
         ridges = [np.asarray(f.ridge, dtype=np.float32) for f in features]
         ends = [np.asarray(f.ends, dtype=np.float32) for f in features]
         T = np.asarray(T, dtype=float).copy()
@@ -640,7 +726,7 @@ class PoseRefiner:
         rounds = (*windows, windows[-1])
         for n_round, half in enumerate(rounds):
             meas, found_n, inside = self._measure(ridges, ends, T, half, occluder, tip_only,
-                                                  tools)
+                                                  tools, blind)
             support = found_n / max(inside, 1)
             if found_n < 8:
                 H = None
@@ -744,6 +830,13 @@ class PoseRefiner:
             Js.append(J[ok])
             ws.append(np.concatenate([wt[pt], wt[~pt]])[ok])
         return np.concatenate(rs), np.concatenate(Js), np.concatenate(ws)
+
+
+def _end_half(half: float) -> float:
+    """The end search's half-window (px) for a round of ``half``: it does not shrink
+    with the crest's, since the half-level point sits a couple of pixels out of a flat
+    end (blur), on both ends alike."""
+    return max(half, 6.0)
 
 
 def _pair(uv: np.ndarray, d: np.ndarray, g: np.ndarray) -> float:

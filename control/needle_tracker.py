@@ -628,6 +628,14 @@ class NeedleTracker:
         self._belief: tuple[np.ndarray, np.ndarray] | None = None
         self._prior_full = False
         self.tools: tuple[ToolCylinder, ...] = ()
+        self.blind: list[np.ndarray] | None = None
+
+    def set_surface_outline(self, outline: np.ndarray | None) -> None:
+        """The tissue surface's corners in order (k, 3, reference frame, m; ``None``:
+        not known): the refinement neither looks for the wire nor reads an end in the
+        band along the surface's edge in each view (:meth:`.PoseRefiner.edge_bands`),
+        where the backdrop steps from tissue to what lies beyond and the wire fades."""
+        self.blind = None if outline is None else self.refiner.edge_bands(outline)
 
     def set_tools(self, tools: Sequence[ToolCylinder]) -> None:
         """The instruments' parts in view now (jaws, shafts; reference frame): the
@@ -841,7 +849,7 @@ class NeedleTracker:
             return self.refiner.refine(features, T0, occluder=self.occluder,
                                        tip_only=s.require_swage, tools=self.tools, prior=p,
                                        search_px=self.refiner.s.search_px[-1:] if narrow
-                                       else None)
+                                       else None, blind=self.blind)
 
         tries = [(T0, False) for T0 in starts]
         if narrow_first and starts:

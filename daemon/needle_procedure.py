@@ -915,6 +915,7 @@ class NeedleProcedure:
             self._masks.append(m.astype(bool))
         self.views = ViewRule(self.cams, self.needle, s, self.normal, self.outline,
                               self._masks)
+        self.tracker.set_surface_outline(self.outline)
         z_ref = float(mid[2])
         self._depth_range = (max(z_ref - s.depth_window, 0.01), z_ref + s.depth_window)
         # state
@@ -1151,8 +1152,11 @@ class NeedleProcedure:
         v = self._sight(T_N)
         up = self.normal - float(self.normal @ v) * v
         side = np.cross(v, self.normal)
-        ways = [w / np.linalg.norm(w) for w in (up, side, -side)
-                if np.linalg.norm(w) > 0.2] + [self.normal]
+        if np.linalg.norm(side) < 1e-9:
+            # looking straight along the normal: any way square to the sight lifts none
+            side = np.cross(v, np.eye(3)[int(np.argmin(np.abs(v)))])
+            up = np.cross(side, v)
+        ways = [w / np.linalg.norm(w) for w in (up, side, -side)] + [self.normal]
         for w in ways:
             move = _translation(self.s.hold_check * w)
             if (self._reach(arm, [move @ T], 0.0)[0]
@@ -1183,6 +1187,12 @@ class NeedleProcedure:
             # not where the jaws took it: perhaps where it was (the jaws let it go)
             stayed = self._look(invert(delta), trusted=False)
             if not stayed.converged:
+                off = self._left_behind(stayed, moved, before, tolerance)
+                if off is not None:
+                    raise _StepFailed("grasp_missed",
+                                      f"{what}: the needle did not follow the jaws: the look "
+                                      f"places it {off * 1e3:.2f} mm from where it was, though "
+                                      f"it did not converge ({stayed.reason})")
                 raise _StepFailed("lost_track", f"{what}: the tracker lost the needle after "
                                                 f"the check motion ({tr.reason})")
             tr = stayed
@@ -1225,6 +1235,28 @@ class NeedleProcedure:
                               f"from where it would be if held, {allowed * 1e3:.2f} mm "
                               f"allowed; {stay * 1e3:.2f} mm from where it was)")
         return tr.pose
+
+    def _left_behind(self, tr: NeedleTrack, moved: np.ndarray, before: np.ndarray,
+                     tolerance: float) -> float | None:
+        """Whether a look that did not converge still shows the needle left where it was
+        (its slide-free distance from ``before``, m) rather than where the jaws took it
+        (``moved``): the fit passed, its position and its plane's tilt are certain, and
+        what failed is the slide along the arc (the views read no end: the tip in the
+        pad's edge band, the base's thread) or the filter's score. ``None`` when it does
+        not show that. It can only tell a miss, never a hold: a needle that followed
+        must be placed whole."""
+        ref = tr.refined
+        if ref is None or not ref.ok or ref.cov is None \
+                or ref.sigma_position > self.s.max_sigma_position:
+            return None
+        # the tilt's uncertainty: the rotation's less the turn about N's z (the slide)
+        tilt = math.sqrt(max(float(np.linalg.eigvalsh(ref.cov[:2, :2]).max()), 0.0))
+        if tilt > self.s.max_sigma_angle:
+            return None
+        stay = self._slide_free_distance(ref.pose, before)
+        if stay <= tolerance < 0.5 * self._slide_free_distance(ref.pose, moved):
+            return stay
+        return None
 
     def _arc_distance(self, T_a: np.ndarray, T_b: np.ndarray) -> float:
         """RMS distance (m) between the needle's arc points at two poses."""

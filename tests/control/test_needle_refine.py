@@ -21,6 +21,7 @@ from oralnav.control.needle_refine import (
     RefineSettings,
     TissuePlane,
     ToolCylinder,
+    edge_band,
     swage_evidence,
 )
 from oralnav.control.needle_tracker import FilterSettings, NeedleTracker, TrackSettings, mirror_tilt
@@ -349,6 +350,109 @@ def test_measurements_skip_hidden_points_and_ends():
     for (idx, _, _, wt), g in zip(meas, grow, strict=True):     # both ends, a true pair
         assert np.count_nonzero(idx == -1) == 1
         assert wt[idx == -1][0] == pytest.approx(ref.s.end_weight / np.mean(g))
+
+
+# -- the tissue surface's edge -------------------------------------------------------------
+
+PAD_Z = 0.11        # the tissue plane, 10 mm behind the needle
+
+
+def _pad_ending_before_the_tip(cam=LEFT, before_px=5.0):
+    """A pad outline (reference frame) in the plane z = PAD_Z with a notch whose edge, a
+    line 80 px long in ``cam``'s image, crosses the needle's image square to it
+    ``before_px`` pixels of arc short of its tip, with the rest of the arc against the
+    pad (the notch's sides run 40 px to either side of the tip); and that crossing's
+    pixel and the arc's image direction there (toward the tip)."""
+    uv = cam.project_from(cam.T_cam_ref @ T_TRUE, NEEDLE.points(400))
+    run = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(uv, axis=0), axis=1))])
+    at = run[-1] - before_px
+    c = np.array([np.interp(at, run, uv[:, 0]), np.interp(at, run, uv[:, 1])])
+    t = np.array([np.interp(at + 1.0, run, uv[:, 0]), np.interp(at + 1.0, run, uv[:, 1])]) - c
+    t /= np.linalg.norm(t)
+    n = np.array([-t[1], t[0]])
+    F = 3000.0
+    corners = [c + 40.0 * n, c + 40.0 * n + F * t, c + F * (n + t), c + F * (n - t),
+               c - F * (n + t), c + F * (t - n), c - 40.0 * n + F * t, c - 40.0 * n]
+    outline = np.array([[(u - K[0, 2]) / K[0, 0] * PAD_Z, (v - K[1, 2]) / K[1, 1] * PAD_Z,
+                         PAD_Z] for u, v in corners])
+    return outline, c, t
+
+
+def _draw_on_pad(cam, outline, seed=0):
+    """The wire shaded as the simulator shades it, darker than the pad (120 DN on 150)
+    and lighter than the dark beyond the pad's outline (70 on 45), the step between them
+    blurred as a lens blurs it: across the middle of the step the wire differs from its
+    backdrop by less than the features' 12 DN contrast."""
+    wire = np.clip((170.0 - _draw(cam, noise=0.0).astype(np.float32)) / 100.0, 0.0, 1.0)
+    uv = cam.project_from(cam.T_cam_ref, outline)
+    pad = np.zeros(wire.shape, np.float32)
+    cv2.fillPoly(pad, [np.round(uv * 16).astype(np.int32)], 1.0, shift=4)
+    pad = cv2.GaussianBlur(pad, (0, 0), 2.0)
+    back = 150.0 * pad + 45.0 * (1.0 - pad)
+    out = back * (1.0 - wire) + (120.0 * pad + 70.0 * (1.0 - pad)) * wire
+    rng = np.random.default_rng(seed)
+    return np.clip(out + rng.normal(0.0, 1.5, out.shape), 0, 255).astype(np.uint8)
+
+
+def test_edge_band_lies_along_the_projected_outline():
+    """The edge band (RefineSettings.edge_band_px): the pixels within the width of the
+    outline's image, on both sides of it, and no others; none at width 0; a bad outline
+    or width is refused."""
+    outline, c, t = _pad_ending_before_the_tip()
+    band = edge_band(LEFT, outline, 6.0)
+    assert band.shape == (LEFT.height, LEFT.width) and band.dtype == bool
+    # across the edge, rasterised: the band's extent within a pixel and a half of +-6 px
+    k = np.arange(-12.0, 12.01, 0.25)
+    px = np.round(c[None] + k[:, None] * t[None]).astype(int)
+    on = band[px[:, 1], px[:, 0]]
+    assert k[on].min() == pytest.approx(-6.0, abs=1.5)
+    assert k[on].max() == pytest.approx(6.0, abs=1.5)
+    assert np.all(on[(k >= k[on].min()) & (k <= k[on].max())])      # one run
+    # and along the edge, away from the crossing
+    far = np.round(c + 25.0 * np.array([-t[1], t[0]])).astype(int)
+    assert band[far[1], far[0]]
+    assert not edge_band(LEFT, outline, 0.0).any()
+    with pytest.raises(NeedleError, match="outline"):
+        edge_band(LEFT, outline[:2], 6.0)
+    with pytest.raises(NeedleError, match="width"):
+        edge_band(LEFT, outline, -1.0)
+    with pytest.raises(NeedleError, match="edge_band_px"):
+        RefineSettings(edge_band_px=-1.0)
+
+
+def test_the_edge_band_is_neither_searched_nor_read_as_an_end():
+    """Where the pad's edge crosses the wire 5 px short of its tip (as the tips of
+    regrasps standing over the edge were), the wire fades into the step and the tip's
+    end is read on the edge, px short of the tip, while the base's is read where it is;
+    with the edge band blind (refine's ``blind``), the points in the band are neither
+    searched nor counted and the tip's end is not read (the base's alone measures the
+    slide)."""
+    outline, c, t = _pad_ending_before_the_tip()
+    feats = [feature_maps(_draw_on_pad(cam, outline), WIRE_PX) for cam in (LEFT, RIGHT)]
+    ridges, ends = [f.ridge for f in feats], [f.ends for f in feats]
+    ref = PoseRefiner(NEEDLE, [LEFT])
+    uv, _, tg = ref._geometry(T_TRUE)[0]
+    tip_off = ref._end(ends[0], uv[-1], tg[1], 3.0)
+    base_off = ref._end(ends[0], uv[0], tg[0], 3.0)
+    assert tip_off - ref.s.end_bias_px < -5.0               # read on the edge, not the tip
+    assert abs(base_off - ref.s.end_bias_px) < 1.0
+    blind = ref.edge_bands(outline)
+    px = np.round(uv).astype(int)
+    banded = blind[0][px[:, 1], px[:, 0]]
+    assert banded.any() and banded[-1]
+    meas, found, inside = ref._measure(ridges[:1], ends[:1], T_TRUE, 3.0, blind=blind)
+    idx, _, _, wt = meas[0]
+    assert inside == int(np.count_nonzero(~banded))
+    assert not np.any(banded[idx[idx >= 0]])
+    # the base's end alone, paired with a phantom tip at half weight
+    assert np.count_nonzero(idx == -1) == 1 and wt[idx == -1][0] < ref.s.end_weight
+    meas, _, inside_all = ref._measure(ridges[:1], ends[:1], T_TRUE, 3.0)
+    assert inside_all == K_POINTS and inside < inside_all
+    with pytest.raises(NeedleError, match="blind"):
+        PoseRefiner(NEEDLE, [LEFT, RIGHT]).refine(feats, T_TRUE, blind=blind)
+
+
+K_POINTS = RefineSettings().points
 
 
 def test_bad_occluder_is_refused():
