@@ -725,6 +725,12 @@ class NeedleTracker:
         ridges = [f.ridge for f in features]
         ref = self._best_fit(features, starts, first_good=len(starts) <= 2,
                              narrow_first=narrow_first)
+        if ref.ok and not self._determined(ref) and self._belief is None:
+            # the crest fits but no end was read, and nothing known holds the slide:
+            # slid along its own arc, the fit may bring an end into the end search
+            again = self._best_fit(features, [ref.pose @ S for S in _SLIDES])
+            if self._determined(again):
+                ref = again
         pose = ref.pose if ref.ok else est.pose
         swage = swage_evidence(self.needle, self.cameras, ridges, pose,
                                tools=self.tools)

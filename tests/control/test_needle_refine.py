@@ -593,6 +593,27 @@ def test_tracker_carries_the_motion_prior_and_drops_one_the_views_contradict():
     assert _err(track.pose, T3)[0] < 1e-4 and track.refined.prior_distance2 == 0.0
 
 
+def test_a_fit_that_reads_no_end_is_slid_along_its_arc_to_find_one():
+    """The tracker's finish (issue 7, trial 43's first look): a fit that lies on the crest
+    20 deg along the arc from the truth (27 px at the tip, beyond the end search's
+    window) reads no end, so its slide is free and the track is not determined; with
+    nothing known to hold the slide, the finish slides it along its own arc and takes
+    the fit that reads an end, which lands on the true pose."""
+    from oralnav.control.needle_tracker import _slide
+
+    cams = [LEFT, RIGHT]
+    tracker = NeedleTracker(NEEDLE, cams, FilterSettings(particles=300, seed=1))
+    feats = _feats(cams, thread=True)
+    est = tracker.filter.initialize([f.distance for f in feats], (0.07, 0.13))
+    start = T_TRUE @ _slide(20.0)
+    alone = tracker._best_fit(feats, [start])
+    assert alone.ok and not tracker._determined(alone)
+    track = tracker._finish(feats, est, [start])
+    assert track.refined is not None and tracker._determined(track.refined)
+    dp, da = _err(track.pose, T_TRUE)
+    assert dp < 0.15e-3 and da < 1.0, (dp, da)
+
+
 def test_the_gate_weighs_what_the_views_leave_free():
     """The tracker's validation gate (issue 7): a fit of the views alone 5 deg along the
     arc from the prior (sigma 1 deg) contradicts it when the views measured that slide,
