@@ -593,7 +593,8 @@ class PoseRefiner:
                 hidden = hidden_by(tools, cam, uv, pts @ Tc[2, :3] + Tc[2, 3])
                 vis = ~hidden if vis is None else vis & ~hidden
             if bl is not None:
-                vis = ~_at(bl, uv) if vis is None else vis & ~_at(bl, uv)
+                clear = ~_at(bl, uv)
+                vis = clear if vis is None else vis & clear
             # a point where the wire runs nearly along the line of sight shows its
             # cross-section, a blob the crest search across the arc cannot place (the
             # base standing out of the entry toward the cameras curls into a hook a few
