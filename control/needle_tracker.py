@@ -628,6 +628,10 @@ class NeedleTracker:
         self._belief: tuple[np.ndarray, np.ndarray] | None = None
         self._prior_full = False
         self.tools: tuple[ToolCylinder, ...] = ()
+        # per camera, the pixels the refinement neither searches nor reads an end on:
+        # the surface's edge band and what the features ignore (``blind``, their union)
+        self._edge: list[np.ndarray] | None = None
+        self._ignored: list[np.ndarray] | None = None
         self.blind: list[np.ndarray] | None = None
 
     def set_surface_outline(self, outline: np.ndarray | None) -> None:
@@ -635,7 +639,39 @@ class NeedleTracker:
         not known): the refinement neither looks for the wire nor reads an end in the
         band along the surface's edge in each view (:meth:`.PoseRefiner.edge_bands`),
         where the backdrop steps from tissue to what lies beyond and the wire fades."""
-        self.blind = None if outline is None else self.refiner.edge_bands(outline)
+        self._edge = None if outline is None else self.refiner.edge_bands(outline)
+        self._blind()
+
+    def set_ignored(self, masks: Sequence[np.ndarray | None] | None) -> None:
+        """Per camera, the pixels the features ignore (bool, image-sized, or ``None``;
+        e.g. the incision line, :func:`feature_maps`' ``ignore``): the wire there is
+        not missing but unseen, and an end read next to them may be where the wire
+        enters them (seed 132: the tip over the incision read 6-7 px short and slid
+        the hand-off's fit 7 deg along the arc). Neither searched nor read as an end."""
+        if masks is None:
+            self._ignored = None
+        else:
+            masks = list(masks)
+            if len(masks) != len(self.cameras):
+                raise NeedleError(f"expected {len(self.cameras)} ignore masks (one per "
+                                  f"camera), got {len(masks)}")
+            out = []
+            for m, cam in zip(masks, self.cameras, strict=True):
+                if m is None:
+                    m = np.zeros((cam.height, cam.width), dtype=bool)
+                m = np.asarray(m)
+                if m.dtype != bool or m.shape != (cam.height, cam.width):
+                    raise NeedleError(f"camera {cam.name!r}: the ignore mask must be a bool "
+                                      f"{cam.height}x{cam.width} image, got {m.dtype} "
+                                      f"{m.shape}")
+                out.append(m)
+            self._ignored = out
+        self._blind()
+
+    def _blind(self) -> None:
+        parts = [p for p in (self._edge, self._ignored) if p is not None]
+        self.blind = (None if not parts else
+                      [np.logical_or.reduce(ms) for ms in zip(*parts, strict=True)])
 
     def set_tools(self, tools: Sequence[ToolCylinder]) -> None:
         """The instruments' parts in view now (jaws, shafts; reference frame): the

@@ -916,6 +916,7 @@ class NeedleProcedure:
         self.views = ViewRule(self.cams, self.needle, s, self.normal, self.outline,
                               self._masks)
         self.tracker.set_surface_outline(self.outline)
+        self.tracker.set_ignored(self._masks)
         z_ref = float(mid[2])
         self._depth_range = (max(z_ref - s.depth_window, 0.01), z_ref + s.depth_window)
         # state

@@ -424,3 +424,36 @@ def test_twins_that_both_read_the_thread_alike_are_contested():
     assert not _contested(8.7, 9.3, replace(s, swage_contest=1.05))
     with pytest.raises(NeedleError, match="swage_contest"):
         TrackSettings(swage_contest=0.9)
+
+
+def test_ignored_pixels_join_the_edge_band_as_blind():
+    """Incision mask (NeedleTracker.set_ignored): the pixels the features ignore are
+    blind to the refinement, as the surface's edge band is: ``blind`` is their union per
+    camera, either alone when the other is unset, and ``None`` with neither. A mask of
+    the wrong size or type, or the wrong number of them, is refused naming the camera
+    or the count."""
+    tr = NeedleTracker(NEEDLE, [CAM], FilterSettings(particles=200))
+    assert tr.blind is None
+    mask = np.zeros((CAM.height, CAM.width), bool)
+    mask[100:110, :] = True
+    tr.set_ignored([mask])
+    assert tr.blind is not None and np.array_equal(tr.blind[0], mask)
+    outline = np.array([[-0.03, -0.03, 0.1], [0.03, -0.03, 0.1], [0.03, 0.03, 0.1],
+                        [-0.03, 0.03, 0.1]])
+    tr.set_surface_outline(outline)
+    band = tr.refiner.edge_bands(outline)[0]
+    assert band.any() and not np.array_equal(band, mask)
+    assert np.array_equal(tr.blind[0], band | mask)
+    tr.set_ignored(None)
+    assert np.array_equal(tr.blind[0], band)
+    tr.set_ignored([None])
+    assert np.array_equal(tr.blind[0], band)
+    tr.set_surface_outline(None)
+    tr.set_ignored(None)
+    assert tr.blind is None
+    with pytest.raises(NeedleError, match="expected 1 ignore masks"):
+        tr.set_ignored([mask, mask])
+    with pytest.raises(NeedleError, match="'endoscope'.*bool"):
+        tr.set_ignored([mask[:10]])
+    with pytest.raises(NeedleError, match="'endoscope'.*bool"):
+        tr.set_ignored([mask.astype(np.uint8)])
