@@ -569,14 +569,18 @@ def _meetings(handoffs: Sequence[tuple], G_TN_A: np.ndarray,
     there = reach_all(T_A)
     out = []
     for k, item in enumerate(handoffs):
-        if not there[k] or (T_A0 is not None
-                            and not reach_all(np.stack(_path(T_A0, T_A[k]))).all()):
+        if not there[k]:
             why[f"{holder} cannot hold it there"] = why.get(f"{holder} cannot hold it there",
                                                             0) + 1
             continue
         seen = views.why_not(item[0], [item[1], T_A[k]])
         if seen:
             why[f"hand-off {seen}"] = why.get(f"hand-off {seen}", 0) + 1
+            continue
+        # the path last: the costliest check, for the few poses that pass the others
+        if T_A0 is not None and not reach_all(np.stack(_path(T_A0, T_A[k]))).all():
+            why[f"{holder} cannot carry it there"] = why.get(
+                f"{holder} cannot carry it there", 0) + 1
             continue
         out.append(item)
         if len(out) >= most:
@@ -638,8 +642,9 @@ def port_pair(needle: Needle, settings: ProcedureSettings | None = None
     (:meth:`NeedleProcedure._plan`) drives the suture and pulls the needle out, and the
     other arm picks up the needle lying at ``T_ref_needle`` (reference frame, m) with a
     grasp the pick-up would make (NG: clear of the driving grasp, reached with its
-    approach and its lift, the lifted needle seen) that can hold the needle at
-    ``handoff_meetings`` of the hand-off poses the driver reaches, the cameras of ``rig``
+    approach and its lift, the lifted needle seen) that can carry the needle from its
+    lift to ``handoff_meetings`` of the hand-off poses the driver reaches (a straight
+    path, as NH's), the cameras of ``rig``
     seeing the needle there past both grippers (NH; the tissue's ``outline`` (k, 3) as
     :class:`ViewRule`'s, or ``None``).
 
@@ -717,13 +722,19 @@ def port_pair(needle: Needle, settings: ProcedureSettings | None = None
         for phi in _pickup_phis(needle, s, choice.phi):
             for g in surface_grasps(needle, T_ref_needle, float(phi), point, normal,
                                     s.pickup_grasp):
-                if not (one[A](g.T_ref_T) and one[A](_back_off(g.T_ref_T, s.approach))
-                        and any(one[A](up @ g.T_ref_T) and not views.why_not(
-                            up @ T_ref_needle, [up @ g.T_ref_T]) for up in lifts)):
+                if not (one[A](g.T_ref_T) and one[A](_back_off(g.T_ref_T, s.approach))):
                     continue
-                if len(_meetings(meet, g.G_TN, lambda T: reaches[A].reachable_all(T, m),
-                                 views, s.handoff_meetings)) >= s.handoff_meetings:
-                    return True
+                # from each lift that the arm reaches and the cameras see, as NG's and
+                # NH's: the holder carries the needle there on a straight path
+                for up in lifts:
+                    if not one[A](up @ g.T_ref_T) \
+                            or views.why_not(up @ T_ref_needle, [up @ g.T_ref_T]):
+                        continue
+                    if len(_meetings(meet, g.G_TN,
+                                     lambda T: reaches[A].reachable_all(T, m), views,
+                                     s.handoff_meetings, up @ g.T_ref_T)
+                           ) >= s.handoff_meetings:
+                        return True
         return False
 
     return workable
@@ -1368,7 +1379,8 @@ class NeedleProcedure:
                 if seen:
                     why[f"lifted needle {seen}"] = why.get(f"lifted needle {seen}", 0) + 1
                     continue
-                n = len(self._meetings(g.G_TN, handoffs, None, why, s.handoff_meetings))
+                n = len(self._meetings(g.G_TN, handoffs, up @ g.T_ref_T, why,
+                                       s.handoff_meetings))
                 if n and (chosen is None or n > chosen[2]):
                     chosen = (g, up, n)
                 if n >= s.handoff_meetings:

@@ -705,3 +705,25 @@ def test_a_tip_over_the_incision_does_not_slide_the_hand_off_grasp():
         assert r.ok and r.truth_ok, r
         if step == "NH":
             assert abs(r.figures["grasp_phi_deg"] - r.figures["planned_phi_deg"]) < 1.5, r
+
+
+def test_the_pick_up_counts_only_hand_offs_the_holder_can_carry_the_needle_to():
+    """Issue 7, the pick-up's plan: the hand-off poses a pick-up grasp leads to
+    (handoff_meetings) count only where the holder, lifted, can carry the needle on the
+    straight path NH moves it on, as NH and port selection (port_pair) check. On trial
+    162 the pick-up counted three meetings whose paths all bent the holder's wrist past
+    its limits midway, and NH refused (out of reach); counted with their paths, the
+    pick-up takes another grasp and the hand-off passes (truth)."""
+    cell, proc = _procedure(162, settings=ProcedureSettings(),
+                            **_ports(ProcedureSettings()))
+    r = proc.run("NG")
+    assert r.ok and r.truth_ok, r
+    A = proc.picker
+    T_N = proc.track.pose
+    why: dict[str, int] = {}
+    found = proc._meetings(proc._grasp_seen(A, T_N), proc._handoff_candidates(),
+                           cell.gripper_pose(A), why, 3)
+    assert found, why
+    r = proc.run("NH")
+    assert r.ok and r.truth_ok, r
+
