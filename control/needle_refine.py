@@ -864,8 +864,12 @@ def swage_evidence(needle: Needle, cameras: Sequence[CameraModel],
     ``d`` the thread may have bent off the tangent: the ridge's highest value across a
     cross of half-width ``cone * d`` (in the needle's plane and out of it) is taken.
     Samples behind one of ``tools`` in a view are not read there: a jaw beside an end
-    is a ridge too, and would pass for the thread.
+    is a ridge too, and would pass for the thread. Nor are samples within a wire's width
+    of the needle's own image: seen nearly edge-on, the tangent beyond an end runs back
+    over the wire, which would pass for thread at that end (trial 84's approach to the
+    entry: -31 DN at the true pose, and the tracker turned the needle end for end).
     """
+    arc = needle.points(181)
     d = np.linspace(span[0], span[1], points)
     lat = np.linspace(-cone, cone, 5)
     # unit offsets across the tangent at each end: in the plane (radial) and out of it
@@ -879,12 +883,21 @@ def swage_evidence(needle: Needle, cameras: Sequence[CameraModel],
     diffs = []
     for cam, ridge in zip(cameras, ridges, strict=True):
         Tc = cam.T_cam_ref @ T
+        own = cam.project_from(Tc, arc)
+        own = own[np.all(np.isfinite(own), axis=1)]
         vals = []
         for pts in ends:
             uv = cam.project_from(Tc, pts).astype(np.float32)
             ok = np.all(np.isfinite(uv), axis=1) & cam.in_image(uv)
+            depth = pts @ Tc[2, :3] + Tc[2, 3]
             if tools:
-                ok &= ~hidden_by(tools, cam, uv, pts @ Tc[2, :3] + Tc[2, 3])
+                ok &= ~hidden_by(tools, cam, uv, depth)
+            if len(own):
+                # the wire's width in pixels at each sample's depth
+                width = cam.K[0, 0] * needle.wire_diameter / np.maximum(depth, 1e-9)
+                near = np.min(np.linalg.norm(uv[:, None, :] - own[None, :, :], axis=2),
+                              axis=1)
+                ok &= ~(near < width)
             v = cv2.remap(np.asarray(ridge, np.float32), uv[:, 0:1], uv[:, 1:2],
                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                           borderValue=0.0)[:, 0].astype(float)

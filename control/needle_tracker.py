@@ -913,6 +913,16 @@ class NeedleTracker:
                     if not math.isfinite(alone.sigma_slide_seen) \
                             or alone.sigma_slide_seen > s.max_sigma_angle:
                         r = fit(T0, slide_only, narrow)
+            if self._belief is not None and rotation_angle(
+                    self._belief[0][:3, :3], r.pose[:3, :3]) >= 0.5 * math.pi:
+                # the other twin of what the motion carried (a start from the filter's
+                # swarm on it is refined without the prior, which cannot reach across
+                # a half turn, and so reads as agreeing with it): base and tip are
+                # decided on the thread's evidence (_finish), not by which fit the
+                # images prefer (trial 178: the approach look's twin fit, its slide
+                # undetermined, replaced the belief and the drive was tracked
+                # end for end)
+                consistent = False
             key = (r.ok, consistent, self._determined(r), -r.rms_px)
             if best is None or key > best:
                 ref, best = r, key

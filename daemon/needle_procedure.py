@@ -557,11 +557,13 @@ def _handoff_poses(drive: Drive, G_TN_B: np.ndarray, normal: np.ndarray, s: Proc
 def _meetings(handoffs: Sequence[tuple], G_TN_A: np.ndarray,
               reach_all: Callable[[np.ndarray], np.ndarray], views: ViewRule, most: int,
               T_A0: np.ndarray | None = None, why: dict[str, int] | None = None,
-              holder: str = "the holder") -> list[tuple]:
+              holder: str = "the holder",
+              also: Callable[[tuple], str] | None = None) -> list[tuple]:
     """The first ``most`` of the hand-off candidates ``handoffs`` (:func:`_handoff_poses`'
     items) where the holder, gripping with ``G_TN_A``, reaches (``reach_all``; along its
-    straight path from ``T_A0``, when given) and the cameras see the needle past both
-    grippers (``views``); ``why`` counts the refusals, naming ``holder``."""
+    straight path from ``T_A0``, when given), the cameras see the needle past both
+    grippers (``views``) and ``also(item)`` (when given) names no refusal; ``why``
+    counts the refusals, naming ``holder``."""
     if not handoffs:
         return []
     why = {} if why is None else why
@@ -581,6 +583,10 @@ def _meetings(handoffs: Sequence[tuple], G_TN_A: np.ndarray,
         if T_A0 is not None and not reach_all(np.stack(_path(T_A0, T_A[k]))).all():
             why[f"{holder} cannot carry it there"] = why.get(
                 f"{holder} cannot carry it there", 0) + 1
+            continue
+        refused = also(item) if also is not None else ""
+        if refused:
+            why[refused] = why.get(refused, 0) + 1
             continue
         out.append(item)
         if len(out) >= most:
@@ -946,6 +952,8 @@ class NeedleProcedure:
         self.G_TN: np.ndarray | None = None   # its grasp, as last seen by the tracker
         self.tip_plan: np.ndarray | None = None  # where the drive should leave the tip (ref)
         self.in_tissue = False
+        # whether the driver's path to a hand-off pose is clear, by start and goal
+        self._driver_paths: dict[tuple[bytes, bytes], str] = {}
 
     # -- public ---------------------------------------------------------------------------
     @property
@@ -1415,12 +1423,30 @@ class NeedleProcedure:
 
     def _meetings(self, G_TN_A: np.ndarray, handoffs: Sequence[tuple],
                   T_A0: np.ndarray | None, why: dict[str, int], most: int = 1) -> list[tuple]:
-        """:func:`_meetings` for the picker on this cell, its plans' margin."""
-        A = self.picker
-        assert A is not None
+        """:func:`_meetings` for the picker on this cell, its plans' margin; the driver
+        must also reach the hand-off's approach and grasp from where it stands on
+        :meth:`_driver_path` (it waits until the needle is there)."""
+        A, B = self.picker, self.driver
+        assert A is not None and B is not None
         m = self.s.reach_margin
+        T_B0 = self.cell.gripper_pose(B)
+
+        def driver_path(item: tuple) -> str:
+            # the same for every pick-up grasp NG weighs: asked once per pose
+            key = (T_B0.tobytes(), item[1].tobytes())
+            if key not in self._driver_paths:
+                ok = self.cell.reachable_all(B, np.stack(self._driver_path(T_B0, item[1])),
+                                             m).all()
+                self._driver_paths[key] = "" if ok else f"{B} cannot get there"
+            return self._driver_paths[key]
         return _meetings(handoffs, G_TN_A, lambda T: self.cell.reachable_all(A, T, m),
-                         self.views, most, T_A0, why, A)
+                         self.views, most, T_A0, why, A, driver_path)
+
+    def _driver_path(self, T0: np.ndarray, T_B: np.ndarray) -> list[np.ndarray]:
+        """The driver's straight path from ``T0`` to the hand-off's approach, then in
+        to its grasp ``T_B`` (the moves NH makes)."""
+        approach = _back_off(T_B, self.s.approach)
+        return _path(T0, approach) + _path(approach, T_B)
 
     def _step_nh(self) -> dict[str, Any]:
         s = self.s
@@ -1454,7 +1480,7 @@ class NeedleProcedure:
             raise _StepFailed("lost_track", f"hand-off: the tracker lost the needle at the "
                                             f"hand-off pose ({tr.reason})")
         T_B = tr.pose @ invert(self.drive_choice.G_TN)
-        ok, why = self._reach(B, [T_B, _back_off(T_B, s.approach)], 0.0)
+        ok, why = self._reach(B, self._driver_path(self.cell.gripper_pose(B), T_B), 0.0)
         if not ok:
             raise _StepFailed("out_of_reach", f"hand-off: {B!r} cannot reach the needle where "
                                               f"it was carried ({why})")

@@ -149,6 +149,24 @@ def test_swage_evidence_tells_base_from_tip():
     assert abs(swage_evidence(NEEDLE, cams, _ridges(cams), T_TRUE)) < 3
 
 
+def test_swage_evidence_does_not_read_the_wire_as_thread():
+    """The base/tip cue seen nearly edge-on: with the tip pointing 10 deg off the left
+    camera's line of sight, the samples beyond the tip run back over the wire's own
+    image. They are not read (a wire's width from the needle's image), so a needle with
+    no thread gives no cue, where reading them gave -25 DN for the twin (trial 84)."""
+    t = NEEDLE.tangent(NEEDLE.arc)
+    t = t / np.linalg.norm(t)
+    z = np.array([0.0, 0.0, 1.0])
+    to_N = np.stack([t, z, np.cross(t, z)], axis=1)       # N's tip tangent, normal
+    sight = np.stack([z, [0.0, 1.0, 0.0], np.cross(z, [0.0, 1.0, 0.0])], axis=1)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec([math.radians(10.0), 0, 0]).as_matrix() \
+        @ sight @ to_N.T
+    T[:3, 3] = [0.0, 0.0, 0.1] - T[:3, :3] @ NEEDLE.tip
+    ridge = feature_maps(_draw(LEFT, T=T, noise=0.0), WIRE_PX).ridge
+    assert abs(swage_evidence(NEEDLE, [LEFT], [ridge], T)) < 3
+
+
 def _err_twin(T, Tt, flip):
     twin = T.copy()
     twin[:3, :3] = T[:3, :3] @ flip
