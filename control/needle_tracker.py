@@ -627,6 +627,9 @@ class NeedleTracker:
         # test)
         self._belief: tuple[np.ndarray, np.ndarray] | None = None
         self._prior_full = False
+        # whether the last motion is one a check tests (untrusted and not the identity):
+        # an update that fits nothing after it leaves nothing known
+        self._motion_tested = False
         self.tools: tuple[ToolCylinder, ...] = ()
         # per camera, the pixels the refinement neither searches nor reads an end on:
         # the surface's edge band and what the features ignore (``blind``, their union)
@@ -721,6 +724,8 @@ class NeedleTracker:
         have shifted it: only the slide is carried."""
         self.filter.predict(delta)
         self._prior_full = trusted
+        self._motion_tested = not trusted and delta is not None and not np.allclose(
+            delta, np.eye(4), rtol=0.0, atol=1e-12)
         if self.last is None:
             return
         T = self.last.pose
@@ -855,9 +860,13 @@ class NeedleTracker:
             # fit's, in the other twin's frame
             self._belief = (pose, ref.cov) if ref.cov is not None and ref.pose is pose \
                 else None
-        elif not self._prior_full:
+        elif self._motion_tested:
             self._belief = None       # a motion under test that nothing confirmed
-        # else: the update fitted nothing, and what was known stands
+        # else: the update fitted nothing, and what was known stands; also where the
+        # jaws just closed (an untrusted look with nothing moved): their hiding most of
+        # the wire says nothing against it, and the slide was widened for the closing.
+        # Dropped there, the pull's look had no slide to hold (trial 15: the tip hidden
+        # in the jaws, the fit slid 15 deg along the thread and the track was lost)
         return track
 
     def _determined(self, r: Refined) -> bool:

@@ -411,6 +411,29 @@ def test_the_slide_drifts_only_with_a_motion(driven):
     assert tr._belief[1][2, 2] == pytest.approx(slide + 2 * drift)
 
 
+def test_jaws_that_close_and_hide_the_wire_leave_the_belief_standing(driven):
+    """The motion prior after an update that fits nothing: where the jaws just closed
+    (an untrusted look, nothing moved) and hide the wire, what was known stands, its
+    slide widened by one drift, for the next look to hold the slide by (trial 15's pull,
+    whose tip the jaws hid). After a motion a check tests (did the needle follow?), it
+    is dropped: nothing confirmed where the needle went. Blank frames stand for the
+    hidden wire."""
+    blank = [feature_maps(np.full((c.height, c.width), 150, np.uint8), 5.0)
+             for c in driven.tracker.cameras]
+    tr = copy.deepcopy(driven.tracker)
+    assert tr._belief is not None
+    T_b, cov = tr._belief
+    tr.predict(np.eye(4), trusted=False)
+    track = tr.update(blank)
+    assert not track.converged and not track.refined.ok
+    assert tr._belief is not None and np.allclose(tr._belief[0], T_b)
+    assert tr._belief[1][2, 2] == pytest.approx(cov[2, 2] + tr.s.slide_drift ** 2)
+    tr = copy.deepcopy(driven.tracker)
+    tr.predict(driven.push, trusted=False)
+    track = tr.update(blank)
+    assert not track.refined.ok and tr._belief is None
+
+
 def test_twins_that_both_read_the_thread_alike_are_contested():
     """Base/tip decision (TrackSettings.swage_contest): two twins' thread evidence
     contests the decision only when both read the thread past their own base (at least

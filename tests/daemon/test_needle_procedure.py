@@ -472,6 +472,21 @@ def test_the_driven_tip_seen_end_on_does_not_make_the_tracker_slip():
         assert r.ok and r.truth_ok, r
 
 
+def _passes_to_the_regrasp(seed: int, blind: bool = False) -> None:
+    """Trial ``seed`` (its ports chosen for the suture) passes NG to NR (truth), the
+    needle in the tissue after ND tracked within 3 deg; ``blind``: the tracker has its
+    blind pixels."""
+    cell, proc = _procedure(seed, settings=ProcedureSettings(),
+                            **_ports(ProcedureSettings()))
+    assert not blind or proc.tracker.blind is not None
+    for step in ("NG", "NH", "ND", "NR"):
+        r = proc.run(step)
+        assert r.ok and r.truth_ok, r
+        if step == "ND":
+            T_t = cell.truth().T_ref_needle
+            assert math.degrees(rotation_angle(proc.track.pose[:3, :3], T_t[:3, :3])) < 3.0
+
+
 def test_a_tip_standing_over_the_pads_edge_does_not_make_the_tracker_slip():
     """Issue 7, tracking at the drive's end: on trial 82 the emerging tip stands 7-9 px
     beyond the pad's edge in both views, where the wire fades into the step from tissue
@@ -480,15 +495,7 @@ def test_a_tip_standing_over_the_pads_edge_does_not_make_the_tracker_slip():
     converged). With the edge band neither searched nor read as an end
     (RefineSettings.edge_band_px, the procedure's surface outline), the drive and the
     regrasp pass (truth) and the needle in the tissue is tracked within 3 deg."""
-    cell, proc = _procedure(82, settings=ProcedureSettings(),
-                            **_ports(ProcedureSettings()))
-    assert proc.tracker.blind is not None
-    for step in ("NG", "NH", "ND", "NR"):
-        r = proc.run(step)
-        assert r.ok and r.truth_ok, r
-        if step == "ND":
-            T_t = cell.truth().T_ref_needle
-            assert math.degrees(rotation_angle(proc.track.pose[:3, :3], T_t[:3, :3])) < 3.0
+    _passes_to_the_regrasp(82, blind=True)
 
 
 def test_the_pulled_needle_is_moved_toward_the_views_middle_to_be_seen():
@@ -737,14 +744,7 @@ def test_a_held_needle_is_not_turned_end_for_end_by_a_fit_from_the_swarm():
     regrasp then found the needle 20 mm from the plan: exit_missed). A fit a half turn
     from a belief now ranks as contradicting it: the drive is tracked within 3 deg and
     the regrasp passes (truth)."""
-    cell, proc = _procedure(178, settings=ProcedureSettings(),
-                            **_ports(ProcedureSettings()))
-    for step in ("NG", "NH", "ND", "NR"):
-        r = proc.run(step)
-        assert r.ok and r.truth_ok, r
-        if step == "ND":
-            T_t = cell.truth().T_ref_needle
-            assert math.degrees(rotation_angle(proc.track.pose[:3, :3], T_t[:3, :3])) < 3.0
+    _passes_to_the_regrasp(178)
 
 
 def test_the_hand_off_is_planned_with_the_drivers_path_to_it():
