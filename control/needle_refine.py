@@ -207,6 +207,23 @@ def edge_band(cam: CameraModel, outline: np.ndarray, width_px: float,
     return np.maximum(d_in, d_out) - 0.5 < width_px
 
 
+def checked_masks(masks: Sequence[np.ndarray | None], cameras: Sequence[CameraModel],
+                  what: str) -> list[np.ndarray | None]:
+    """``masks`` as a list, one per camera (bool, image-sized, or ``None``); refused
+    (:class:`NeedleError` naming ``what`` masks and the camera) otherwise."""
+    masks = list(masks)
+    if len(masks) != len(cameras):
+        raise NeedleError(f"expected {len(cameras)} {what} masks (one per camera, or "
+                          f"None), got {len(masks)}")
+    for m, cam in zip(masks, cameras, strict=True):
+        if m is not None and (np.asarray(m).dtype != bool
+                              or np.shape(m) != (cam.height, cam.width)):
+            raise NeedleError(f"camera {cam.name!r}: the {what} mask must be a bool "
+                              f"{cam.height} x {cam.width} image, got "
+                              f"{np.asarray(m).dtype} {np.shape(m)}")
+    return masks
+
+
 def _at(mask: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """``mask`` (bool image) at the pixels nearest ``uv`` (k, 2); False outside the
     image and where ``uv`` is not finite."""
@@ -705,15 +722,7 @@ class PoseRefiner:
                                       f"{getattr(f, what).shape}, the camera is "
                                       f"{cam.height} x {cam.width}")
         if blind is not None:
-            blind = list(blind)
-            if len(blind) != len(self.cameras):
-                raise NeedleError(f"expected {len(self.cameras)} blind masks (one per "
-                                  f"camera, or None), got {len(blind)}")
-            for m, cam in zip(blind, self.cameras, strict=True):
-                if m is not None and (m.dtype != bool or m.shape != (cam.height, cam.width)):
-                    raise NeedleError(f"camera {cam.name!r}: the blind mask must be a bool "
-                                      f"{cam.height} x {cam.width} image, got {m.dtype} "
-                                      f"{m.shape}")
+            blind = checked_masks(blind, self.cameras, "blind")
         ridges = [np.asarray(f.ridge, dtype=np.float32) for f in features]
         ends = [np.asarray(f.ends, dtype=np.float32) for f in features]
         T = np.asarray(T, dtype=float).copy()

@@ -62,6 +62,7 @@ from .needle_refine import (
     RefineSettings,
     TissuePlane,
     ToolCylinder,
+    checked_masks,
     checked_tools,
     swage_evidence,
 )
@@ -651,24 +652,10 @@ class NeedleTracker:
         not missing but unseen, and an end read next to them may be where the wire
         enters them (seed 132: the tip over the incision read 6-7 px short and slid
         the hand-off's fit 7 deg along the arc). Neither searched nor read as an end."""
-        if masks is None:
-            self._ignored = None
-        else:
-            masks = list(masks)
-            if len(masks) != len(self.cameras):
-                raise NeedleError(f"expected {len(self.cameras)} ignore masks (one per "
-                                  f"camera), got {len(masks)}")
-            out = []
-            for m, cam in zip(masks, self.cameras, strict=True):
-                if m is None:
-                    m = np.zeros((cam.height, cam.width), dtype=bool)
-                m = np.asarray(m)
-                if m.dtype != bool or m.shape != (cam.height, cam.width):
-                    raise NeedleError(f"camera {cam.name!r}: the ignore mask must be a bool "
-                                      f"{cam.height}x{cam.width} image, got {m.dtype} "
-                                      f"{m.shape}")
-                out.append(m)
-            self._ignored = out
+        self._ignored = None if masks is None else [
+            np.zeros((cam.height, cam.width), dtype=bool) if m is None else np.asarray(m)
+            for m, cam in zip(checked_masks(masks, self.cameras, "ignore"), self.cameras,
+                              strict=True)]
         self._blind()
 
     def _blind(self) -> None:
@@ -724,8 +711,8 @@ class NeedleTracker:
         have shifted it: only the slide is carried."""
         self.filter.predict(delta)
         self._prior_full = trusted
-        self._motion_tested = not trusted and delta is not None and not np.allclose(
-            delta, np.eye(4), rtol=0.0, atol=1e-12)
+        still = delta is not None and np.allclose(delta, np.eye(4), rtol=0.0, atol=1e-12)
+        self._motion_tested = not trusted and delta is not None and not still
         if self.last is None:
             return
         T = self.last.pose
@@ -741,8 +728,7 @@ class NeedleTracker:
         # look with nothing moved adds none, where the views do not see the ends
         # (the jaws hide one) would otherwise let it grow by one drift per look until
         # the track counts as lost while the pose is as good as before
-        moved = not trusted or not np.allclose(delta, np.eye(4), rtol=0.0, atol=1e-12)
-        slide = s.slide_drift if moved else 0.0
+        slide = s.slide_drift if not trusted or not still else 0.0
         drift = np.array([s.tilt_drift, s.tilt_drift, slide] + 3 * [s.position_drift])
         T_b, cov = self._belief
         self._belief = (np.asarray(delta, dtype=float) @ T_b, cov + np.diag(drift ** 2))

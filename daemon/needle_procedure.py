@@ -572,19 +572,14 @@ def _meetings(handoffs: Sequence[tuple], G_TN_A: np.ndarray,
     out = []
     for k, item in enumerate(handoffs):
         if not there[k]:
-            why[f"{holder} cannot hold it there"] = why.get(f"{holder} cannot hold it there",
-                                                            0) + 1
-            continue
-        seen = views.why_not(item[0], [item[1], T_A[k]])
-        if seen:
-            why[f"hand-off {seen}"] = why.get(f"hand-off {seen}", 0) + 1
-            continue
+            refused = f"{holder} cannot hold it there"
+        elif seen := views.why_not(item[0], [item[1], T_A[k]]):
+            refused = f"hand-off {seen}"
         # the path last: the costliest check, for the few poses that pass the others
-        if T_A0 is not None and not reach_all(np.stack(_path(T_A0, T_A[k]))).all():
-            why[f"{holder} cannot carry it there"] = why.get(
-                f"{holder} cannot carry it there", 0) + 1
-            continue
-        refused = also(item) if also is not None else ""
+        elif T_A0 is not None and not reach_all(np.stack(_path(T_A0, T_A[k]))).all():
+            refused = f"{holder} cannot carry it there"
+        else:
+            refused = also(item) if also is not None else ""
         if refused:
             why[refused] = why.get(refused, 0) + 1
             continue
