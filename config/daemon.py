@@ -183,6 +183,38 @@ class ApiSection(Strict):
         return v
 
 
+class InputsSection(Strict):
+    """The e-stop and foot pedal (docs/drivers.md, "Serial safety inputs"). ``sim``: the
+    simulated buttons (pressed over REST in the demo); ``serial``: a box streaming ``$OSIO``
+    status lines on ``port``."""
+
+    backend: Literal["sim", "serial"] = "sim"
+    # validate_default: the check below must also run when port is left out
+    port: str | None = Field(None, min_length=1, validate_default=True)
+    baudrate: Annotated[Int, Field(ge=1200, le=4_000_000)] = 115200
+    # s without a status line after which the input is silent (reads e-stop pressed)
+    heartbeat_timeout: Annotated[Float, Field(gt=0, le=1.0)] = 0.1
+    # good lines in a row before a faulted input reads again
+    recover_lines: Annotated[Int, Field(ge=1, le=100)] = 3
+    # s start waits for the box before the daemon goes on (with the input in fault)
+    connect_timeout: Annotated[Float, Field(gt=0, le=30.0)] = 2.0
+
+    @field_validator("port")
+    @classmethod
+    def _port_for_serial(cls, v: str | None, info: ValidationInfo) -> str | None:
+        if info.data.get("backend") == "serial" and not v:
+            raise ValueError("the serial backend needs port (the box's device path)")
+        return v
+
+    def driver_options(self) -> dict[str, object]:
+        """Keyword arguments of the backend's constructor."""
+        if self.backend == "sim":
+            return {}
+        return {"port": self.port, "baudrate": self.baudrate,
+                "heartbeat_timeout": self.heartbeat_timeout,
+                "recover_lines": self.recover_lines, "connect_timeout": self.connect_timeout}
+
+
 class CalibrationSection(Strict):
     """The cell's calibration files (docs/calibration.md), relative to this file. Each is
     checked on load: its kind, its cell (must be ``cell``), rigid transforms, units."""
@@ -206,6 +238,7 @@ class DaemonFile(Strict):
     calibration: CalibrationSection | None = None
     control: ControlSection = ControlSection()
     safety: SafetySection = SafetySection()
+    inputs: InputsSection = InputsSection()
     api: ApiSection = ApiSection()
 
 

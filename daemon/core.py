@@ -160,8 +160,9 @@ class DaemonCore:
         if self.inputs is not None:
             ins = self.inputs.state()
             if ins.estop_pressed:
-                sup.estop(now, "e-stop input", "emergency stop pressed"
-                          if ins.connected else "e-stop input disconnected (reads pressed)")
+                sup.estop(now, "e-stop input", "emergency stop pressed" if ins.connected else
+                          f"e-stop input not connected, reads pressed: {ins.fault}"
+                          if ins.fault else "e-stop input disconnected (reads pressed)")
         for trip in self.watchdogs.check(now):
             sup.fault(now, trip.name, trip.reason)
         problem = self._health(st)
@@ -208,7 +209,14 @@ class DaemonCore:
                         motion_commands=int(st["motion_commands"]))
         with self._lock:
             rates = dict(self._rates)
-        return jsonable({"safety": sup, "control_loop": loop, "rates_hz": rates,
+        inputs = None
+        if self.inputs is not None:
+            ins = self.inputs.state()
+            inputs = {"connected": ins.connected, "estop_pressed": ins.estop_pressed,
+                      "pedal_pressed": ins.pedal_pressed, "fault": ins.fault,
+                      "age_s": self.clock() - ins.timestamp}
+        return jsonable({"safety": sup, "control_loop": loop, "inputs": inputs,
+                         "rates_hz": rates,
                          "uptime_s": self.clock() - self._started,
                          "procedure": dict(self.procedure_info),
                          "guidance": self._guide_status(st)})

@@ -22,6 +22,7 @@ __all__ = ["BACKENDS", "InputState", "SafetyInputs", "inputs_class", "open_input
 
 #: Backend name -> ``"module:Class"``; the module is imported on first use.
 BACKENDS: dict[str, str] = {
+    "serial": "oralnav.drivers.io.serial_link:SerialInputs",
     "sim": "oralnav.drivers.io.sim:SimInputs",
 }
 

@@ -29,12 +29,15 @@ class InputState:
         estop_pressed: the e-stop is pressed, or cannot be read (fail-safe).
         pedal_pressed: the foot pedal is held (False when it cannot be read).
         connected: the driver talks to the input device.
+        fault: why it does not (silent line, garbage, lost port), when the backend knows;
+            None while connected.
     """
 
     timestamp: float
     estop_pressed: bool
     pedal_pressed: bool
     connected: bool
+    fault: str | None = None
 
     def fail_safe(self) -> InputState:
         """This reading, or its safe version when not connected (e-stop pressed, pedal

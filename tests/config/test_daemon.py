@@ -136,6 +136,17 @@ def test_hardware_backend_needs_no_scene(tmp_path):
     assert load_config(_write(tmp_path, "c.toml", text)).scene_path is None
 
 
+def test_serial_inputs_section_gives_the_driver_its_options(tmp_path):
+    """Issue 8 (configuration): [inputs] backend = "serial" passes port, baudrate and the
+    heartbeat settings to the serial backend; the default is the simulated buttons."""
+    assert load_config(_write(tmp_path, "a.toml", GOOD)).settings.inputs.backend == "sim"
+    text = GOOD + '\n[inputs]\nbackend = "serial"\nport = "/dev/ttyUSB0"\nbaudrate = 57600\n'
+    ins = load_config(_write(tmp_path, "b.toml", text)).settings.inputs
+    assert ins.driver_options() == {"port": "/dev/ttyUSB0", "baudrate": 57600,
+                                    "heartbeat_timeout": 0.1, "recover_lines": 3,
+                                    "connect_timeout": 2.0}
+
+
 # -- bad input -----------------------------------------------------------------------------
 BROKEN = {
     # name: (file text, expected "[section] key" text, expected reason texts)
@@ -176,6 +187,13 @@ BROKEN = {
                             ("file not found",)),
     "scene_file_missing": (_edit(f"{CONFIG}/examples/stereo_cell.toml", "none.toml"),
                            "[cell] scene:", ("file not found",)),
+    "serial_inputs_without_port": (GOOD + '\n[inputs]\nbackend = "serial"\n',
+                                   "[inputs] port:", ("serial backend needs port",)),
+    "inputs_backend_unknown": (GOOD + '\n[inputs]\nbackend = "usb"\n', "[inputs] backend:",
+                               ("'sim' or 'serial'",)),
+    "inputs_heartbeat_bound": (GOOD + '\n[inputs]\nbackend = "serial"\nport = "/dev/x"\n'
+                               "heartbeat_timeout = 5.0\n", "[inputs] heartbeat_timeout:",
+                               ("less than or equal to 1",)),
 }
 
 

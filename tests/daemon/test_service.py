@@ -80,3 +80,57 @@ def test_main_job_visits_every_target(tmp_path: Path) -> None:
     assert set(demo["tre_mm"]) == {"stitch_1", "stitch_2", "stitch_3", "stitch_4"}
     assert max(demo["tre_mm"].values()) < 0.2
     assert demo["rates_hz"]["tracking"] > 1.0
+
+
+def test_daemon_reads_the_serial_estop_box(tmp_path: Path) -> None:
+    """Issue 8 (serial I/O in the daemon): oralnavd configured with [inputs] backend =
+    "serial" reads the simulated box on a pty: /status shows the input connected; the box's
+    e-stop latches ESTOP with its reason; SIGTERM still exits cleanly."""
+    from oralnav.sim.serial_box import SerialBox
+
+    config_dir = Path(__file__).resolve().parents[2] / "config"
+    text = (config_dir / "sim.toml").read_text()
+    for folder in ("rigs/", "fields/", "examples/", "calibration/"):
+        text = text.replace(f'= "{folder}', f'= "{config_dir}/{folder}')
+    link = tmp_path / "osio"
+    text += f'\n[inputs]\nbackend = "serial"\nport = "{link}"\nheartbeat_timeout = 0.5\n'
+    (tmp_path / "cell.toml").write_text(text)
+    port = _free_port()
+    env = dict(os.environ, STATE_DIRECTORY=str(tmp_path), RUNTIME_DIRECTORY=str(tmp_path))
+    with SerialBox(rate_hz=100, link=link) as box:
+        proc = subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main", "--config",
+                                 str(tmp_path / "cell.toml"), "--api-port", str(port)],
+                                env=env, cwd=tmp_path, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            base = f"http://127.0.0.1:{port}"
+            deadline = time.monotonic() + 60
+            while True:
+                assert proc.poll() is None, proc.stderr.read()
+                try:
+                    if httpx.get(f"{base}/health", timeout=0.5).status_code == 200:
+                        break
+                except httpx.TransportError:
+                    pass
+                assert time.monotonic() < deadline, "the API never came up"
+                time.sleep(0.1)
+            tokens = dict(line.split() for line in (tmp_path / "tokens.txt").read_text()
+                          .splitlines())
+            head = {"Authorization": f"Bearer {tokens['observer']}"}
+            st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
+            assert st["inputs"]["connected"] is True and st["inputs"]["fault"] is None
+            assert st["safety"]["state"] != "ESTOP"
+            box.press_estop()
+            deadline = time.monotonic() + 10
+            while st["safety"]["state"] != "ESTOP":
+                assert time.monotonic() < deadline, st["safety"]
+                time.sleep(0.05)
+                st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
+            assert "emergency stop pressed" in str(st["safety"]["reasons"])
+            proc.send_signal(signal.SIGTERM)
+            out, err = proc.communicate(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert proc.returncode == 0, err
