@@ -32,6 +32,7 @@ __all__ = [
 
 #: Backend name -> ``"module:Class"``; the module is imported on first use.
 BACKENDS: dict[str, str] = {
+    "canopen": "oralnav.drivers.effector.canopen_drive:CanopenDriveEffector",
     "modbus": "oralnav.drivers.effector.modbus_drive:ModbusDriveEffector",
     "sim": "oralnav.drivers.effector.sim:SimEffector",
 }

@@ -82,7 +82,7 @@ class ModbusDriveEffector(MotorDriveEffector):
         host, port: the drive's (or gateway's) address for TCP (port default 502).
         serial_port, baudrate, parity, stopbits: the serial line for RTU without ``host``.
         device_id: the drive's Modbus unit id (1..247).
-        timeout: s per transaction before the link counts as lost (default: the
+        timeout: s per transaction before the link counts as lost (default: half the
             silence timeout).
         watchdog_ms: the drive's host watchdog (register 12), 0 to leave it off.
         **options: :class:`~.motor_drive.MotorDriveEffector`'s (kinematics, counts_per_rad,
@@ -113,7 +113,9 @@ class ModbusDriveEffector(MotorDriveEffector):
         if isinstance(watchdog_ms, bool) or not isinstance(watchdog_ms, int) \
                 or not 0 <= watchdog_ms <= 65535:
             raise DriverInitError(f"{where}: watchdog_ms must be 0..65535, got {watchdog_ms!r}")
-        t = self.silence_timeout if timeout is None else timeout
+        # half the silence limit by default: a drive that does not answer is named before
+        # the wrist as a whole reads silent
+        t = self.silence_timeout / 2 if timeout is None else timeout
         if not (isinstance(t, int | float) and math.isfinite(t) and t > 0):
             raise DriverInitError(f"{where}: timeout must be > 0 s, got {timeout!r}")
         self.transport, self.host, self.port = transport, host, port

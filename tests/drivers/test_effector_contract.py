@@ -3,13 +3,15 @@ promises: refused commands before start and after close; commands within the lim
 followed and out-of-limit ones refused (not clamped); stop() holds and never raises; a lost
 link reads disconnected and refuses commands until it returns; a device fault is named and
 refuses commands until cleared. The Modbus backend runs against the emulated drive unit (a
-pymodbus server on loopback)."""
+pymodbus server on loopback), the CANopen one against emulated CiA 402 drives on python-can's
+virtual bus."""
 
 from __future__ import annotations
 
 import logging
 import threading
 import time
+import uuid
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 
@@ -19,6 +21,7 @@ import pytest
 
 from oralnav.drivers.effector import EffectorCommandError, EndEffector, open_effector
 from oralnav.drivers.errors import DriverIOError
+from oralnav.sim.cia402_drive import EmulatedCia402Drives
 from oralnav.sim.modbus_drive import ModbusDriveServer
 
 WAIT = 3.0
@@ -61,12 +64,25 @@ async def _modbus() -> AsyncIterator[Harness]:
                       eff.reset_fault)
 
 
-@pytest.fixture(params=["sim", "modbus"])
+async def _canopen() -> AsyncIterator[Harness]:
+    channel = f"oralnav-{uuid.uuid4().hex[:8]}"
+    drives = EmulatedCia402Drives(channel)
+    drives.start()
+    try:
+        eff = open_effector("canopen", interface="virtual", channel=channel,
+                            reconnect_backoff=(0.02, 0.1))
+        yield Harness(eff, drives.stop, drives.start, lambda: drives.inject_fault(2),
+                      eff.reset_fault)
+    finally:
+        drives.stop()
+
+
+@pytest.fixture(params=["sim", "modbus", "canopen"])
 async def harness(request) -> AsyncIterator[Harness]:
     logger = logging.getLogger("pymodbus")
     level = logger.level
     logger.setLevel(logging.CRITICAL)  # refused reconnections are expected here
-    gen = {"sim": _sim, "modbus": _modbus}[request.param]()
+    gen = {"sim": _sim, "modbus": _modbus, "canopen": _canopen}[request.param]()
     h = await gen.__anext__()
     try:
         yield h
