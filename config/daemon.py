@@ -22,6 +22,7 @@ from oralnav.sim.scene import Scene
 from .calibration import Calibration, load_calibration
 from .cell import load_cell_config
 from .fields import load_fields
+from .hardware import EffectorSection
 from .loader import Float, Int, Strict, read_toml, resolve_file, validate
 from .rig import load_rig
 from .scene import load_scene
@@ -239,6 +240,7 @@ class DaemonFile(Strict):
     control: ControlSection = ControlSection()
     safety: SafetySection = SafetySection()
     inputs: InputsSection = InputsSection()
+    effector: EffectorSection = EffectorSection()
     api: ApiSection = ApiSection()
 
 
@@ -286,6 +288,8 @@ def load_config(path: str | Path | None = None) -> DaemonConfig:
     scene = load_scene(scene_path) if scene_path is not None else None
     cell_cfg = (load_cell_config(resolve_file(path, "cell.sim_cell", cell.sim_cell))
                 if cell.sim_cell else None)
+    if doc.effector.canopen is not None and doc.effector.canopen.eds:
+        resolve_file(path, "effector.canopen.eds", doc.effector.canopen.eds)  # must exist
     cals: dict[str, Calibration] = {}
     if doc.calibration is not None:
         c = doc.calibration

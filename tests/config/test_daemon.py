@@ -147,6 +147,35 @@ def test_serial_inputs_section_gives_the_driver_its_options(tmp_path):
                                     "connect_timeout": 2.0}
 
 
+def test_effector_section_gives_the_drive_backend_its_options(tmp_path):
+    """Issue 8 (configuration): [effector] with [effector.canopen] gives the CANopen backend
+    the configured coupling, pretension, limits and bus settings; the default is the
+    simulated wrist."""
+    assert load_config(_write(tmp_path, "a.toml", GOOD)).settings.effector.backend == "sim"
+    text = GOOD + """
+[effector]
+backend = "canopen"
+coupling = [[1.0, 0, 0, 0], [0, 1.5, 0, 0], [0, 0.5, 1.0, 0], [0, 0.5, 0, 1.0]]
+pretension = [0.0, 0.1, 0.05, 0.05]
+motor_min = [-10, -10, -10, -10]
+motor_max = [10, 10, 10, 10]
+
+[effector.canopen]
+channel = "can1"
+node_ids = [11, 12, 13, 14]
+mode = "pp"
+"""
+    cfg = load_config(_write(tmp_path, "b.toml", text))
+    opts = cfg.settings.effector.driver_options(cfg.path.parent)
+    assert opts["kinematics"].coupling[1, 1] == 1.5
+    assert opts["pretension"] == [0.0, 0.1, 0.05, 0.05]
+    assert (opts["channel"], opts["node_ids"], opts["mode"]) == ("can1", (11, 12, 13, 14), "pp")
+    from oralnav.drivers.effector import open_effector
+
+    eff = open_effector("canopen", **opts)  # the backend accepts them as they are
+    assert eff.node_ids == (11, 12, 13, 14)
+
+
 # -- bad input -----------------------------------------------------------------------------
 BROKEN = {
     # name: (file text, expected "[section] key" text, expected reason texts)
@@ -191,6 +220,22 @@ BROKEN = {
                                    "[inputs] port:", ("serial backend needs port",)),
     "inputs_backend_unknown": (GOOD + '\n[inputs]\nbackend = "usb"\n', "[inputs] backend:",
                                ("'sim' or 'serial'",)),
+    "effector_canopen_without_section": (GOOD + '\n[effector]\nbackend = "canopen"\n',
+                                         ": effector:", ("needs an [effector.canopen]",)),
+    "effector_singular_coupling": (GOOD + "\n[effector]\ncoupling = [[1, 0, 0, 0], "
+                                   "[0, 1, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]]\n",
+                                   ": effector:", ("condition number",)),
+    "effector_pretension_degrees": (GOOD + "\n[effector]\npretension = [5, 5, 5, 5]\n",
+                                    ": effector:", ("degrees?",)),
+    "effector_modbus_tcp_without_host": (
+        GOOD + '\n[effector]\nbackend = "modbus"\n[effector.modbus]\nport = 502\n',
+        "[effector] modbus", ("Modbus TCP needs host",)),
+    "effector_canopen_host_id_clash": (
+        GOOD + '\n[effector]\nbackend = "canopen"\n[effector.canopen]\nhost_node_id = 3\n',
+        "[effector] canopen", ("is a drive's node id",)),
+    "effector_eds_missing": (
+        GOOD + '\n[effector]\nbackend = "canopen"\n[effector.canopen]\neds = "none.eds"\n',
+        "[effector.canopen] eds:", ("file not found",)),
     "inputs_heartbeat_bound": (GOOD + '\n[inputs]\nbackend = "serial"\nport = "/dev/x"\n'
                                "heartbeat_timeout = 5.0\n", "[inputs] heartbeat_timeout:",
                                ("less than or equal to 1",)),

@@ -1,0 +1,140 @@
+"""Configuration sections of the real cell's devices (docs/formats.md): the tendon-driven
+end-effector on its drive, ``[effector]`` with ``[effector.canopen]`` or
+``[effector.modbus]``. Validated with the daemon configuration; each section turns into the
+backend's constructor arguments with ``driver_options``.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import Field, model_validator
+
+from oralnav.drivers.effector.kinematics import (
+    DEFAULT_COUPLING,
+    DEFAULT_JOINT_MAX,
+    DEFAULT_JOINT_MIN,
+    DEFAULT_MOTOR_MAX,
+    DEFAULT_MOTOR_MIN,
+    WristKinematics,
+)
+from oralnav.drivers.errors import DriverInitError
+
+from .loader import Float, Int, Strict
+
+__all__ = ["CanopenSection", "EffectorSection", "ModbusSection"]
+
+Four = tuple[Float, Float, Float, Float]
+
+
+def _four(values: Any) -> tuple[float, float, float, float]:
+    return tuple(float(v) for v in values)  # type: ignore[return-value]
+
+
+class CanopenSection(Strict):
+    """``[effector.canopen]``: four CiA 402 drives on a CAN bus."""
+
+    interface: str = Field("socketcan", min_length=1)   # python-can interface
+    channel: str = Field("can0", min_length=1)
+    bitrate: Annotated[Int, Field(ge=10_000, le=1_000_000)] = 1_000_000
+    node_ids: tuple[Int, Int, Int, Int] = (1, 2, 3, 4)
+    eds: str | None = Field(None, min_length=1)          # the drives' EDS, relative to this file
+    mode: Literal["csp", "pp"] = "csp"
+    heartbeat_ms: Annotated[Int, Field(ge=1, le=65535)] = 20
+    host_node_id: Annotated[Int, Field(ge=1, le=127)] = 0x7F
+    host_heartbeat_ms: Annotated[Int, Field(ge=1, le=65535)] = 20
+
+    @model_validator(mode="after")
+    def _ids(self) -> CanopenSection:
+        ids = self.node_ids
+        if len(set(ids)) != 4 or not all(1 <= i <= 127 for i in ids):
+            raise ValueError(f"node_ids must be 4 distinct ids in 1..127, got {list(ids)}")
+        if self.host_node_id in ids:
+            raise ValueError(f"host_node_id {self.host_node_id} is a drive's node id")
+        return self
+
+
+class ModbusSection(Strict):
+    """``[effector.modbus]``: a drive unit on Modbus TCP or RTU."""
+
+    transport: Literal["tcp", "rtu"] = "tcp"
+    host: str | None = Field(None, min_length=1)
+    port: Annotated[Int, Field(ge=1, le=65535)] = 502
+    serial_port: str | None = Field(None, min_length=1)
+    baudrate: Annotated[Int, Field(ge=1200, le=4_000_000)] = 115200
+    parity: Literal["N", "E", "O"] = "N"
+    stopbits: Literal[1, 2] = 1
+    device_id: Annotated[Int, Field(ge=1, le=247)] = 1
+    watchdog_ms: Annotated[Int, Field(ge=0, le=65535)] = 100
+
+    @model_validator(mode="after")
+    def _where(self) -> ModbusSection:
+        if self.transport == "tcp" and not self.host:
+            raise ValueError("Modbus TCP needs host")
+        if self.transport == "rtu" and not (self.host or self.serial_port):
+            raise ValueError("Modbus RTU needs serial_port (or host for a TCP gateway)")
+        return self
+
+
+class EffectorSection(Strict):
+    """``[effector]``: the wrist's kinematics and its drive. Angles in rad, as everywhere
+    unless a key names another unit; joints ``[roll, pitch, yaw, jaw]``, motors in the same
+    order. The kinematics apply to the drive backends; the simulated wrist keeps the
+    example kinematics the simulated cell renders."""
+
+    backend: Literal["sim", "canopen", "modbus"] = "sim"
+    # rows are motors, columns joints: m = C q + motor_offset (docs/drivers.md)
+    coupling: tuple[Four, Four, Four, Four] = tuple(
+        _four(r) for r in DEFAULT_COUPLING)  # type: ignore[assignment]
+    joint_min: Four = _four(DEFAULT_JOINT_MIN)
+    joint_max: Four = _four(DEFAULT_JOINT_MAX)
+    motor_min: Four = _four(DEFAULT_MOTOR_MIN)
+    motor_max: Four = _four(DEFAULT_MOTOR_MAX)
+    motor_offset: Four = (0.0, 0.0, 0.0, 0.0)
+    # rad per motor: the extra angle that keeps each tendon taut at the joints' zero
+    pretension: Four = (0.0, 0.0, 0.0, 0.0)
+    counts_per_rad: Four = (4096 / (2 * math.pi),) * 4
+    rate_hz: Annotated[Float, Field(ge=10, le=1000)] = 200.0
+    silence_timeout: Annotated[Float, Field(gt=0, le=1.0)] = 0.1
+    canopen: CanopenSection | None = None
+    modbus: ModbusSection | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> EffectorSection:
+        if self.backend == "canopen" and self.canopen is None:
+            raise ValueError('backend = "canopen" needs an [effector.canopen] section')
+        if self.backend == "modbus" and self.modbus is None:
+            raise ValueError('backend = "modbus" needs an [effector.modbus] section')
+        if any(c <= 0 for c in self.counts_per_rad):
+            raise ValueError(f"counts_per_rad must be > 0, got {list(self.counts_per_rad)}")
+        if any(abs(p) > math.pi for p in self.pretension):
+            raise ValueError(f"pretension is rad per motor; {list(self.pretension)} has one "
+                             "over pi (degrees?)")
+        self.kinematics()  # a singular coupling or an empty range is a configuration error
+        return self
+
+    def kinematics(self) -> WristKinematics:
+        """The configured coupling and limits; ValueError naming what is wrong."""
+        try:
+            return WristKinematics(self.coupling, self.joint_min, self.joint_max,
+                                   self.motor_min, self.motor_max, self.motor_offset)
+        except DriverInitError as exc:
+            raise ValueError(str(exc)) from None
+
+    def driver_options(self, config_dir: Path) -> dict[str, Any]:
+        """The backend's constructor arguments (an EDS path relative to ``config_dir``)."""
+        if self.backend == "sim":
+            return {}
+        opts: dict[str, Any] = {
+            "kinematics": self.kinematics(), "pretension": list(self.pretension),
+            "counts_per_rad": list(self.counts_per_rad), "rate_hz": self.rate_hz,
+            "silence_timeout": self.silence_timeout}
+        if self.backend == "canopen":
+            bus = self.canopen.model_dump()
+            if bus["eds"]:
+                bus["eds"] = str(config_dir / bus["eds"])
+            bus["node_ids"] = tuple(bus["node_ids"])
+            return opts | bus
+        return opts | self.modbus.model_dump()
