@@ -22,6 +22,21 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def _wait_for_api(proc: subprocess.Popen, base: str, folder: Path) -> dict[str, str]:
+    """Wait (at most 60 s) for the daemon's /health; its demo tokens by name."""
+    deadline = time.monotonic() + 60
+    while True:
+        assert proc.poll() is None, proc.stderr.read()
+        try:
+            if httpx.get(f"{base}/health", timeout=0.5).status_code == 200:
+                break
+        except httpx.TransportError:
+            pass
+        assert time.monotonic() < deadline, "the API never came up"
+        time.sleep(0.1)
+    return dict(line.split() for line in (folder / "tokens.txt").read_text().splitlines())
+
+
 def test_sigterm_stops_the_robot_then_exits_cleanly(tmp_path: Path) -> None:
     """Start oralnavd on the embedded sim configuration, check /health and an operator
     command over HTTP, then SIGTERM: the daemon latches the stop, the control loop confirms
@@ -32,19 +47,8 @@ def test_sigterm_stops_the_robot_then_exits_cleanly(tmp_path: Path) -> None:
                              "--api-port", str(port)], env=env, cwd=tmp_path,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.monotonic() + 60
         base = f"http://127.0.0.1:{port}"
-        while True:
-            assert proc.poll() is None, proc.stderr.read()
-            try:
-                if httpx.get(f"{base}/health", timeout=0.5).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert time.monotonic() < deadline, "the API never came up"
-            time.sleep(0.1)
-        tokens = dict(line.split() for line in (tmp_path / "tokens.txt").read_text()
-                      .splitlines())
+        tokens = _wait_for_api(proc, base, tmp_path)
         head = {"Authorization": f"Bearer {tokens['operator']}"}
         st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
         assert st["control_loop"]["running"] is True
@@ -104,18 +108,7 @@ def test_daemon_reads_the_serial_estop_box(tmp_path: Path) -> None:
                                 stderr=subprocess.PIPE, text=True)
         try:
             base = f"http://127.0.0.1:{port}"
-            deadline = time.monotonic() + 60
-            while True:
-                assert proc.poll() is None, proc.stderr.read()
-                try:
-                    if httpx.get(f"{base}/health", timeout=0.5).status_code == 200:
-                        break
-                except httpx.TransportError:
-                    pass
-                assert time.monotonic() < deadline, "the API never came up"
-                time.sleep(0.1)
-            tokens = dict(line.split() for line in (tmp_path / "tokens.txt").read_text()
-                          .splitlines())
+            tokens = _wait_for_api(proc, base, tmp_path)
             head = {"Authorization": f"Bearer {tokens['observer']}"}
             st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
             assert st["inputs"]["connected"] is True and st["inputs"]["fault"] is None
