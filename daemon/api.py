@@ -61,6 +61,7 @@ MIN_NORMAL_NORM = 1e-6
 MAX_PATH_CHARS = 4096
 
 ProcedureAction = Literal["start", "pause", "resume", "abort"]
+Device = Literal["effector", "arm"]
 NeedleStep = Literal["NG", "NH", "ND", "NR", "NP"]
 _Vec3 = tuple[Float, Float, Float]
 
@@ -172,6 +173,7 @@ class Operations(Protocol):
     def telemetry(self) -> dict[str, Any]: ...   # JSON-able live snapshot for the websocket
     def estop(self, who: str, reason: str) -> None: ...
     def reset(self, who: str) -> None: ...       # raises StateError when not allowed
+    def recover(self, device: str, who: str) -> None: ...  # StateError unless latched
     def procedure(self, action: Literal["start", "pause", "resume", "abort"],
                   who: str) -> None: ...  # StateError
     def targets(self) -> list[SutureTarget]: ...
@@ -428,6 +430,13 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
     @app.post("/reset", summary="Clear a latched stop (409 when not allowed)")
     async def post_reset(request: Request, who: Operator) -> JSONResponse:
         return await command(request, who, "reset", lambda: ops.reset(who.name))
+
+    @app.post("/recover/{device}", summary="Recover a device from its fault while the stop "
+              "is latched: the wrist drive's fault reset, or the arm controller's recovery "
+              "(409 otherwise)")
+    async def post_recover(request: Request, who: Operator, device: Device) -> JSONResponse:
+        return await command(request, who, f"recover {device}",
+                             lambda: ops.recover(device, who.name))
 
     @app.post("/procedure/{action}", summary="Start, pause, resume or abort the procedure")
     async def post_procedure(request: Request, who: Operator,

@@ -75,6 +75,8 @@ CMD_DTYPE = np.dtype([
     ("clear_count", "i8"),         # bumped by the daemon after an authenticated reset
     ("stops_cleared", "i8"),       # stop_count when that reset was made: it ends those
     ("shutdown", "?"),
+    ("recover_count", "i8"),       # bumped by the daemon for an operator's device recovery
+    ("recover_device", "S16"),     # "effector" or "arm"
 ])
 
 #: The loop -> daemon status.
@@ -108,6 +110,10 @@ STATUS_DTYPE = np.dtype([
     ("guide_rod_distance", "f8"),  # m: the rod's certified clearance at the measured TCP
     ("guide_to_target", "f8"),     # m: measured head to the target along the axis (> 0 out)
     ("guide_lateral", "f8"),       # m: measured head's distance from the planned axis
+    # the wrist's drive (docs/drivers.md) and device recovery (docs/safety.md)
+    ("wrist_connected", "?"),
+    ("wrist_fault", f"S{240}"),
+    ("recover_count_seen", "i8"),
 ])
 
 
@@ -161,6 +167,7 @@ class ControlLoop:
         self._latched = False
         self._stop_seen = int(cmd.read()["stop_count"])
         self._clear_seen = int(cmd.read()["clear_count"])
+        self._recover_seen = int(cmd.read()["recover_count"])
         self._deadline = DeadlineWatchdog(settings.period, settings.deadline_misses,
                                           settings.max_period_lateness)
         self._silence = DriverSilenceWatchdog(settings.driver_silence)
@@ -239,6 +246,9 @@ class ControlLoop:
             # late period both arrive together and must not latch the loop again
             self._stop_seen = max(self._stop_seen, int(cmd["stops_cleared"]))
             self._unlatch(arm)
+        if int(cmd["recover_count"]) != self._recover_seen:
+            self._recover_seen = int(cmd["recover_count"])
+            self._recover(cmd["recover_device"].decode("ascii", "replace"))
         reason = self._trip_reason(now, arm, wrist, nav, cmd)
         if reason is not None and not self._latched:
             self._latch(now, reason)
@@ -308,6 +318,26 @@ class ControlLoop:
                 dev.stop()
             except Exception:  # stop() must not raise, but the loop must outlive it
                 log.exception("stop() of %r raised", dev)
+
+    def _recover(self, device: str) -> None:
+        """An operator asked to recover a device from its fault: the wrist's drive runs its
+        fault reset (``reset_fault``), the arm its controller's recovery (``recover``). Only
+        while the stop is latched; both only start the work (their own threads do it), so
+        the period is not held up."""
+        if not self._latched:
+            log.warning("recovery of %s ignored: the stop is not latched", device)
+            return
+        dev = {"effector": self.effector, "arm": self.arm}.get(device)
+        action = {"effector": "reset_fault", "arm": "recover"}.get(device, "")
+        fn = getattr(dev, action, None)
+        if fn is None:
+            log.warning("recovery of %s: the %s driver has no %s()", device, device, action)
+            return
+        log.warning("recovering %s (%s) at the operator's request", device, action)
+        try:
+            fn()
+        except Exception:  # a driver error must not end the loop; the status shows the fault
+            log.exception("recovering %s failed", device)
 
     def _unlatch(self, arm: Any) -> None:
         """The daemon cleared the stop after an authenticated reset: resume from where
@@ -383,7 +413,10 @@ class ControlLoop:
             guide_active=self._guide_active, guide_planned=self._guide is not None,
             guide_seq=self._guide_seq, guide_refused_seq=self._guide_refused,
             guide_rod_distance=self._guide_metrics[0],
-            guide_to_target=self._guide_metrics[1], guide_lateral=self._guide_metrics[2])
+            guide_to_target=self._guide_metrics[1], guide_lateral=self._guide_metrics[2],
+            wrist_connected=wrist.connected if wrist is not None else False,
+            wrist_fault=encode_reason(wrist.fault or "") if wrist is not None else b"",
+            recover_count_seen=self._recover_seen)
 
 
 def run_at_rate(step: Callable[[float, float], None], rate_hz: float,

@@ -207,6 +207,7 @@ class ControlPort:
         self.status: SharedRecord | None = None
         self._stops = 0
         self._clears = 0
+        self._recovers = 0
         self._guide_sent = 0            # the last plan message's number (set_guide)
         #: size (bytes) of the last plan message, 0 where no pipe carries it
         self.guide_bytes = 0
@@ -245,6 +246,15 @@ class ControlPort:
         if self.cmd is not None:
             self._clears += 1
             self.cmd.write(clear_count=self._clears, stops_cleared=self._stops)
+
+    def recover(self, device: str) -> None:
+        """Ask the loop to recover ``device`` (``"effector"``: the drive's fault reset;
+        ``"arm"``: the controller's recovery); it acts only while its stop is latched."""
+        if device not in ("effector", "arm"):
+            raise ValueError(f"unknown device {device!r} (effector or arm)")
+        if self.cmd is not None:
+            self._recovers += 1
+            self.cmd.write(recover_count=self._recovers, recover_device=device.encode())
 
     def set_goal(self, T_B_tcp: np.ndarray, t_pose: float, *, move: bool,
                  near_point: np.ndarray | None = None, wrist: np.ndarray | None = None

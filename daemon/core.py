@@ -179,6 +179,9 @@ class DaemonCore:
             return "arm not connected"
         if bool(st["protective_stop"]) or bool(st["emergency_stop"]):
             return "arm stopped by its controller"
+        wrist_fault = decode_reason(st["wrist_fault"])
+        if wrist_fault:  # a drive's fault or lost link (POST /recover/effector resets one)
+            return f"end-effector: {wrist_fault}"
         return None
 
     async def supervise(self, *, task_status: anyio.abc.TaskStatus[None] =
@@ -206,6 +209,8 @@ class DaemonCore:
                         period_error_p99_ms=p99, period_error_max_ms=float(st["err_max"]) * 1e3,
                         periods_off_1ms=int(st["misses"]),
                         arm_connected=bool(st["arm_connected"]),
+                        wrist_connected=bool(st["wrist_connected"]),
+                        wrist_fault=decode_reason(st["wrist_fault"]) or None,
                         motion_commands=int(st["motion_commands"]))
         with self._lock:
             rates = dict(self._rates)
@@ -248,6 +253,17 @@ class DaemonCore:
 
     def estop(self, who: str, reason: str) -> None:
         self.supervisor.estop(self.clock(), f"operator {who}", reason or "REST e-stop")
+
+    def recover(self, device: str, who: str) -> None:
+        """An operator's request to recover ``device`` from its fault while the stop is
+        latched: ``"effector"`` runs the drive's fault reset, ``"arm"`` the arm
+        controller's recovery. Clearing the latch stays a separate reset."""
+        state = self.supervisor.state
+        if state not in (SafetyState.FAULT, SafetyState.ESTOP):
+            raise StateError(f"cannot recover the {device} in {state.value}: device "
+                             "recovery runs only while the stop is latched (FAULT or ESTOP)")
+        log.warning("operator %s: recovering the %s", who, device)
+        self.control.recover(device)
 
     def reset(self, who: str) -> None:
         now = self.clock()

@@ -61,6 +61,11 @@ class FakeOps:
         self.calls.append(("reset", who))
         self.state = "IDLE"
 
+    def recover(self, device: str, who: str) -> None:
+        if self.state != "ESTOP":
+            raise StateError(f"cannot recover the {device} in {self.state}")
+        self.calls.append(("recover", device, who))
+
     def procedure(self, action: str, who: str) -> None:
         allowed = {"start": "IDLE", "pause": "RUNNING", "resume": "PAUSED", "abort": "RUNNING"}
         if self.state != allowed[action]:
@@ -144,7 +149,7 @@ class FakeOps:
 
 POSTS = ["/estop", "/reset", "/procedure/start", "/procedure/pause", "/procedure/resume",
          "/procedure/abort", "/targets", "/guide/plan", "/guide/start", "/guide/stop",
-         "/needle/cell", "/needle/NG"]
+         "/needle/cell", "/needle/NG", "/recover/effector"]
 GOOD_TARGETS = {"targets": [{"name": "s1", "p_OM": [0.01, 0.02, 0.0]},
                             {"name": "s2", "p_OM": [0.0, -0.01, 0.005], "n_OM": [0, 0, 2]}]}
 EYE4 = np.eye(4).tolist()
@@ -222,7 +227,8 @@ def test_every_post_route_is_covered(rig):
     """issue 4 REST: the role tests below cover every POST route the app has."""
     posts = {r.path for r in rig.app.routes if "POST" in getattr(r, "methods", ())}
     assert posts == {"/estop", "/reset", "/procedure/{action}", "/targets", "/guide/plan",
-                     "/guide/start", "/guide/stop", "/needle/cell", "/needle/{step}"}
+                     "/guide/start", "/guide/stop", "/needle/cell", "/needle/{step}",
+                     "/recover/{device}"}
 
 
 @pytest.mark.parametrize("path", POSTS)
