@@ -27,9 +27,11 @@ taken and refused, the rod's clearance and where the head is on the planned axis
 
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 import os
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -335,9 +337,15 @@ class ControlLoop:
             return
         log.warning("recovering %s (%s) at the operator's request", device, action)
         try:
-            fn()
+            pending = fn()
         except Exception:  # a driver error must not end the loop; the status shows the fault
             log.exception("recovering %s failed", device)
+            return
+        if inspect.isawaitable(pending):
+            # an async recovery (the UR arm's dashboard sequence takes seconds): its own
+            # thread and event loop, never this period's
+            threading.Thread(target=_await_recovery, args=(device, pending),
+                             name=f"recover-{device}", daemon=True).start()
 
     def _unlatch(self, arm: Any) -> None:
         """The daemon cleared the stop after an authenticated reset: resume from where
@@ -417,6 +425,21 @@ class ControlLoop:
             wrist_connected=wrist.connected if wrist is not None else False,
             wrist_fault=encode_reason(wrist.fault or "") if wrist is not None else b"",
             recover_count_seen=self._recover_seen)
+
+
+def _await_recovery(device: str, pending: Any) -> None:
+    """Run an async device recovery to its end in this (worker) thread; log the outcome."""
+    import anyio
+
+    async def wait() -> None:
+        await pending
+
+    try:
+        anyio.run(wait)
+    except Exception:
+        log.exception("recovering %s failed", device)
+    else:
+        log.warning("recovery of %s done", device)
 
 
 def run_at_rate(step: Callable[[float, float], None], rate_hz: float,

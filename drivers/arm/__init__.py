@@ -22,6 +22,7 @@ __all__ = ["BACKENDS", "Arm", "ArmCommandError", "ArmState", "arm_class", "open_
 #: Backend name -> ``"module:Class"``; the module is imported on first use.
 BACKENDS: dict[str, str] = {
     "sim": "oralnav.drivers.arm.sim:SimArm",
+    "ur": "oralnav.drivers.arm.ur:URArm",
 }
 
 

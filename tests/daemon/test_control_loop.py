@@ -5,6 +5,7 @@ with no motion command after the stop. On the virtual clock, in-process."""
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 
 import anyio
@@ -287,3 +288,30 @@ def test_goal_outside_the_workspace_stops_at_once(cell: Cell) -> None:
     cell.goal(2.0)  # 2 m along x: far outside the default box (x <= 0.85 m)
     cell.run(5)
     _assert_stopped(cell, t, "workspace: goal outside the box (x +")
+
+
+def test_device_recovery_runs_only_while_latched(cell: Cell) -> None:
+    """issue 8 (device recovery): a recover request reaches the wrist's reset_fault() and
+    the arm's recover() only while the stop is latched; an async recover() runs to its end
+    in a thread of its own, not in the period."""
+    calls: list[str] = []
+    done = threading.Event()
+
+    async def arm_recover() -> None:  # the UR arm's recovery is a coroutine
+        await anyio.sleep(0.01)
+        calls.append("arm")
+        done.set()
+
+    cell.wrist.reset_fault = lambda: calls.append("effector")  # type: ignore[attr-defined]
+    cell.arm.recover = arm_recover  # type: ignore[attr-defined]
+    cell.cmd.write(recover_count=1, recover_device=b"effector")
+    cell.run(2)
+    assert calls == [] and cell.status.read()["recover_count_seen"] == 1  # not latched
+    cell.cmd.write(stop_count=1, stop_reason=encode_reason("test"))
+    cell.run(2)
+    cell.cmd.write(recover_count=2, recover_device=b"effector")
+    cell.run(1)
+    assert calls == ["effector"]
+    cell.cmd.write(recover_count=3, recover_device=b"arm")
+    cell.run(1)
+    assert done.wait(2.0) and calls == ["effector", "arm"]
