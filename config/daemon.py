@@ -12,7 +12,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import Field, ValidationInfo, field_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from oralnav.control.camera import Rig
 from oralnav.control.markers import MarkerField
@@ -22,7 +22,7 @@ from oralnav.sim.scene import Scene
 from .calibration import Calibration, load_calibration
 from .cell import load_cell_config
 from .fields import load_fields
-from .hardware import EffectorSection
+from .hardware import ArmSection, EffectorSection
 from .loader import Float, Int, Strict, read_toml, resolve_file, validate
 from .rig import load_rig
 from .scene import load_scene
@@ -240,8 +240,22 @@ class DaemonFile(Strict):
     control: ControlSection = ControlSection()
     safety: SafetySection = SafetySection()
     inputs: InputsSection = InputsSection()
+    arm: ArmSection = ArmSection()
     effector: EffectorSection = EffectorSection()
     api: ApiSection = ApiSection()
+
+    @model_validator(mode="after")
+    def _sim_cell_drives_sim_devices(self) -> DaemonFile:
+        # the simulated cell renders its cameras from the simulated arm and wrist
+        if self.cell.backend == "sim":
+            real = [f"[{k}] backend = {b!r}" for k, b in
+                    (("arm", self.arm.backend), ("effector", self.effector.backend))
+                    if b != "sim"]
+            if real:
+                raise ValueError("the simulated cell ([cell] backend = \"sim\") drives the "
+                                 "simulated arm and wrist; " + ", ".join(real)
+                                 + " needs [cell] backend = \"hardware\"")
+        return self
 
 
 @dataclass(frozen=True)

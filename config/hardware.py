@@ -1,7 +1,7 @@
-"""Configuration sections of the real cell's devices (docs/formats.md): the tendon-driven
-end-effector on its drive, ``[effector]`` with ``[effector.canopen]`` or
-``[effector.modbus]``. Validated with the daemon configuration; each section turns into the
-backend's constructor arguments with ``driver_options``.
+"""Configuration sections of the real cell's devices (docs/formats.md): the arm, ``[arm]``
+with ``[arm.ur]``, and the tendon-driven end-effector on its drive, ``[effector]`` with
+``[effector.canopen]`` or ``[effector.modbus]``. Validated with the daemon configuration;
+each section turns into the backend's constructor arguments with ``driver_options``.
 """
 
 from __future__ import annotations
@@ -24,13 +24,48 @@ from oralnav.drivers.errors import DriverInitError
 
 from .loader import Float, Int, Strict
 
-__all__ = ["CanopenSection", "EffectorSection", "ModbusSection"]
+__all__ = ["ArmSection", "CanopenSection", "EffectorSection", "ModbusSection", "URSection"]
 
 Four = tuple[Float, Float, Float, Float]
 
 
 def _four(values: Any) -> tuple[float, float, float, float]:
     return tuple(float(v) for v in values)  # type: ignore[return-value]
+
+
+class URSection(Strict):
+    """``[arm.ur]``: a Universal Robots arm through ur-rtde (docs/ur_rtde.md)."""
+
+    host: str = Field(min_length=1)                     # the controller's address
+    # RTDE rate, Hz; None: the controller's own (500 e-Series, 125 CB3)
+    frequency: Annotated[Float, Field(gt=0, le=500)] | None = None
+    lookahead_time: Annotated[Float, Field(ge=0.03, le=0.2)] = 0.1   # servoL, s
+    gain: Annotated[Float, Field(ge=100, le=2000)] = 300.0           # servoL
+    # s without a command or kick before the controller stops the arm
+    watchdog_timeout: Annotated[Float, Field(gt=0, le=1.0)] = 0.05
+    stop_decel: Annotated[Float, Field(gt=0, le=40)] = 10.0          # m/s^2
+    connect_timeout: Annotated[Float, Field(gt=0, le=30)] = 2.0
+    upper_range_registers: bool = False   # RTDE registers 24-47, leaving 0-23 to a fieldbus
+
+
+class ArmSection(Strict):
+    """``[arm]``: the robot arm. ``sim`` is the simulated arm (the simulated cell always
+    uses it); ``ur`` needs ``[arm.ur]``."""
+
+    backend: Literal["sim", "ur"] = "sim"
+    ur: URSection | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ArmSection:
+        if self.backend == "ur" and self.ur is None:
+            raise ValueError('backend = "ur" needs an [arm.ur] section')
+        return self
+
+    def driver_options(self) -> dict[str, Any]:
+        """The backend's constructor arguments (the sim arm's come from the daemon)."""
+        if self.backend == "sim" or self.ur is None:
+            return {}
+        return self.ur.model_dump()
 
 
 class CanopenSection(Strict):

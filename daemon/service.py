@@ -76,19 +76,24 @@ def load_tokens(cfg: DaemonConfig) -> tuple[TokenStore, dict[str, str]]:
 
 
 def build_control(cfg: DaemonConfig, home: np.ndarray | None = None) -> ControlProcess:
-    """The control process for ``cfg``'s cell (sim drivers for the sim backend)."""
+    """The control process for ``cfg``'s cell: the simulated arm and wrist for the sim
+    cell; for a hardware cell the ``[arm]`` and ``[effector]`` backends (docs/formats.md)."""
     s = cfg.settings
-    if s.cell.backend != "sim":
-        raise NotImplementedError("hardware drivers come with the hardware issue; "
-                                  "use [cell] backend = \"sim\"")
-    # the simulated arm's watchdog outwaits the loop's own deadline watchdog, so a stalled
-    # loop is stopped by the loop, with its reason, and the arm's watchdog stays the backstop
-    arm_opts: dict[str, Any] = {"max_speed": s.safety.max_speed,
-                                "watchdog_timeout": max(0.05, 2.0 * s.safety.max_period_lateness)}
-    if home is not None:
-        arm_opts["home"] = home
+    if s.arm.backend == "sim":
+        # the simulated arm's watchdog outwaits the loop's own deadline watchdog, so a
+        # stalled loop is stopped by the loop, with its reason, and the arm's watchdog
+        # stays the backstop
+        arm_opts: dict[str, Any] = {
+            "max_speed": s.safety.max_speed,
+            "watchdog_timeout": max(0.05, 2.0 * s.safety.max_period_lateness)}
+        if home is not None:
+            arm_opts["home"] = home
+    else:
+        arm_opts = s.arm.driver_options()
+    effector_opts = s.effector.driver_options(cfg.path.parent)
     return ControlProcess(ProcessSpec(
-        arm=DriverSpec("sim", arm_opts), effector=DriverSpec("sim"),
+        arm=DriverSpec(s.arm.backend, arm_opts),
+        effector=DriverSpec(s.effector.backend, effector_opts),
         settings=LoopSettings.from_config(s.control, s.safety),
         limiter=SpeedLimiter.from_settings(s.safety),
         realtime_priority=s.control.realtime_priority, cpu=s.control.cpu))

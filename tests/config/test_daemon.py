@@ -53,6 +53,10 @@ def _edit(old: str, new: str, text: str = GOOD) -> str:
     return edit(old, new, text)
 
 
+#: GOOD as a hardware cell (the simulated cell drives only simulated devices)
+HW = _edit('backend = "sim"', 'backend = "hardware"')
+
+
 _write = write_file
 _expect = partial(expect_config_error, load_config)
 
@@ -152,7 +156,7 @@ def test_effector_section_gives_the_drive_backend_its_options(tmp_path):
     the configured coupling, pretension, limits and bus settings; the default is the
     simulated wrist."""
     assert load_config(_write(tmp_path, "a.toml", GOOD)).settings.effector.backend == "sim"
-    text = GOOD + """
+    text = HW + """
 [effector]
 backend = "canopen"
 coupling = [[1.0, 0, 0, 0], [0, 1.5, 0, 0], [0, 0.5, 1.0, 0], [0, 0.5, 0, 1.0]]
@@ -201,7 +205,7 @@ BROKEN = {
     "missing_cell": (GOOD.split("[cell]")[0], ": cell:", ("Field required",)),
     "unknown_key": (_edit("stale_pose = 0.1", "stale_pose = 0.1\nmax_force = 5.0"),
                     "[safety] max_force:", ("unknown key",)),
-    "unknown_section": (GOOD + "\n[arm]\nip = \"10.0.0.2\"\n", ": arm:", ("unknown key",)),
+    "unknown_section": (GOOD + "\n[robot]\nip = \"10.0.0.2\"\n", ": robot:", ("unknown key",)),
     "port_string": (_edit("port = 8750", 'port = "8750"'), "[api] port:", ("valid integer",)),
     "port_bound": (_edit("port = 8750", "port = 70000"), "[api] port:",
                    ("less than or equal to 65535",)),
@@ -220,7 +224,7 @@ BROKEN = {
                                    "[inputs] port:", ("serial backend needs port",)),
     "inputs_backend_unknown": (GOOD + '\n[inputs]\nbackend = "usb"\n', "[inputs] backend:",
                                ("'sim' or 'serial'",)),
-    "effector_canopen_without_section": (GOOD + '\n[effector]\nbackend = "canopen"\n',
+    "effector_canopen_without_section": (HW + '\n[effector]\nbackend = "canopen"\n',
                                          ": effector:", ("needs an [effector.canopen]",)),
     "effector_singular_coupling": (GOOD + "\n[effector]\ncoupling = [[1, 0, 0, 0], "
                                    "[0, 1, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]]\n",
@@ -228,14 +232,24 @@ BROKEN = {
     "effector_pretension_degrees": (GOOD + "\n[effector]\npretension = [5, 5, 5, 5]\n",
                                     ": effector:", ("degrees?",)),
     "effector_modbus_tcp_without_host": (
-        GOOD + '\n[effector]\nbackend = "modbus"\n[effector.modbus]\nport = 502\n',
+        HW + '\n[effector]\nbackend = "modbus"\n[effector.modbus]\nport = 502\n',
         "[effector] modbus", ("Modbus TCP needs host",)),
     "effector_canopen_host_id_clash": (
-        GOOD + '\n[effector]\nbackend = "canopen"\n[effector.canopen]\nhost_node_id = 3\n',
+        HW + '\n[effector]\nbackend = "canopen"\n[effector.canopen]\nhost_node_id = 3\n',
         "[effector] canopen", ("is a drive's node id",)),
     "effector_eds_missing": (
-        GOOD + '\n[effector]\nbackend = "canopen"\n[effector.canopen]\neds = "none.eds"\n',
+        HW + '\n[effector]\nbackend = "canopen"\n[effector.canopen]\neds = "none.eds"\n',
         "[effector.canopen] eds:", ("file not found",)),
+    "arm_ur_without_section": (_edit('backend = "sim"', 'backend = "hardware"')
+                               + '\n[arm]\nbackend = "ur"\n', ": arm:",
+                               ("needs an [arm.ur]",)),
+    "arm_ur_lookahead_bound": (_edit('backend = "sim"', 'backend = "hardware"')
+                               + '\n[arm]\nbackend = "ur"\n[arm.ur]\nhost = "10.0.0.2"\n'
+                               "lookahead_time = 0.5\n", "[arm.ur] lookahead_time:",
+                               ("less than or equal to 0.2",)),
+    "sim_cell_with_real_arm": (GOOD + '\n[arm]\nbackend = "ur"\n[arm.ur]\nhost = "x"\n',
+                               ": the simulated cell", ("drives the simulated arm and wrist",
+                                                 "[arm] backend = 'ur'")),
     "inputs_heartbeat_bound": (GOOD + '\n[inputs]\nbackend = "serial"\nport = "/dev/x"\n'
                                "heartbeat_timeout = 5.0\n", "[inputs] heartbeat_timeout:",
                                ("less than or equal to 1",)),

@@ -127,3 +127,84 @@ def test_daemon_reads_the_serial_estop_box(tmp_path: Path) -> None:
                 proc.kill()
                 proc.communicate()
     assert proc.returncode == 0, err
+
+
+def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:
+    """Issue 8 (done when: the daemon runs with the fake devices in place of the simulated
+    ones): oralnavd on a [cell] backend = "hardware" configuration drives the UR arm through
+    ur_rtde against the fake UR controller, the wrist over Modbus TCP against the emulated
+    drive unit, and reads the serial e-stop box; /status shows all three connected and the
+    cell READY; the box's e-stop latches ESTOP; SIGTERM exits cleanly."""
+    import logging
+
+    from oralnav.sim.modbus_drive import ModbusDriveServer
+    from oralnav.sim.serial_box import SerialBox
+    from oralnav.sim.ur_controller import FakeURControllerProcess
+
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    config_dir = Path(__file__).resolve().parents[2] / "config"
+    link = tmp_path / "osio"
+    ur_host = f"127.84.{os.getpid() % 250}.1"
+    with FakeURControllerProcess(ur_host) as ur, ModbusDriveServer() as drive, \
+            SerialBox(rate_hz=100, link=link) as box:
+        (tmp_path / "cell.toml").write_text(f"""
+name = "hardware-test"
+[cell]
+backend = "hardware"
+rig = "{config_dir}/rigs/stereo.toml"
+fields = "{config_dir}/fields/cell.toml"
+[safety]
+driver_silence = 0.5
+max_period_lateness = 0.1
+deadline_misses = 10
+[inputs]
+backend = "serial"
+port = "{link}"
+heartbeat_timeout = 0.5
+[arm]
+backend = "ur"
+[arm.ur]
+host = "{ur.host}"
+lookahead_time = 0.05
+gain = 500.0
+watchdog_timeout = 0.25
+[effector]
+backend = "modbus"
+silence_timeout = 0.3
+[effector.modbus]
+host = "127.0.0.1"
+port = {drive.port}
+""")
+        port = _free_port()
+        env = dict(os.environ, STATE_DIRECTORY=str(tmp_path), RUNTIME_DIRECTORY=str(tmp_path))
+        proc = subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main", "--config",
+                                 str(tmp_path / "cell.toml"), "--api-port", str(port)],
+                                env=env, cwd=tmp_path, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            base = f"http://127.0.0.1:{port}"
+            tokens = _wait_for_api(proc, base, tmp_path)
+            head = {"Authorization": f"Bearer {tokens['observer']}"}
+            deadline = time.monotonic() + 20
+            while True:
+                st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
+                if st["safety"]["state"] == "READY":
+                    break
+                assert time.monotonic() < deadline, st
+                time.sleep(0.1)
+            loop = st["control_loop"]
+            assert loop["arm_connected"] and loop["wrist_connected"], loop
+            assert loop["wrist_fault"] is None and st["inputs"]["connected"]
+            box.press_estop()
+            deadline = time.monotonic() + 10
+            while st["safety"]["state"] != "ESTOP":
+                assert time.monotonic() < deadline, st["safety"]
+                time.sleep(0.05)
+                st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
+            proc.send_signal(signal.SIGTERM)
+            out, err = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert proc.returncode == 0, err[-3000:]
