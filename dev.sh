@@ -19,14 +19,59 @@ PY
         echo "dev.sh: creating $VENV" >&2
         python3 -m venv "$VENV"
     fi
-    # Reinstall only when pyproject.toml changes.
-    local stamp="$VENV/.oralnav-$(sha1sum pyproject.toml | cut -c1-12)"
+    # The Aravis camera backend (PyGObject, built here from source) needs Debian packages;
+    # without them oralnav installs without it and its tests are skipped, saying why.
+    local extras="test"
+    if aravis_system_packages; then
+        extras="test,aravis"
+    fi
+    # Reinstall only when pyproject.toml (or the extras installed) changes.
+    local stamp="$VENV/.oralnav-$(sha1sum pyproject.toml | cut -c1-12)-${extras/,/-}"
     if [ ! -f "$stamp" ]; then
-        echo "dev.sh: installing oralnav and its dependencies into $VENV" >&2
+        echo "dev.sh: installing oralnav[$extras] and its dependencies into $VENV" >&2
         "$VENV/bin/python" -m pip install -q --upgrade pip >&2
-        "$VENV/bin/python" -m pip install -q -e ".[test]" >&2
+        "$VENV/bin/python" -m pip install -q -e ".[$extras]" >&2
         rm -f "$VENV"/.oralnav-*
         touch "$stamp"
+    fi
+}
+
+# Debian packages of the Aravis backend: Aravis 0.8's introspection data, its simulated
+# GigE Vision camera (for the tests), and what PyGObject and pycairo build against. Installs
+# the missing ones with apt-get when run as root; returns 1 (with a message) if some stay
+# missing.
+aravis_system_packages() {
+    local wanted=(gir1.2-aravis-0.8 aravis-tools libgirepository1.0-dev libcairo2-dev
+                  pkg-config)
+    command -v cc >/dev/null || wanted+=(gcc)
+    "${VENV}/bin/python" - <<'PY' || wanted+=(python3-dev)
+import os, sys, sysconfig
+sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))
+PY
+    if ! command -v dpkg-query >/dev/null; then
+        echo "dev.sh: not a Debian system: the Aravis camera backend (Aravis 0.8 with" \
+             "GObject introspection, PyGObject) is not installed; its tests are skipped" >&2
+        return 1
+    fi
+    local missing=() pkg
+    for pkg in "${wanted[@]}"; do
+        [[ "$(dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null)" == *"ok installed" ]] \
+            || missing+=("$pkg")
+    done
+    [ ${#missing[@]} -eq 0 ] && return 0
+    if [ "$(id -u)" -ne 0 ] || ! command -v apt-get >/dev/null; then
+        echo "dev.sh: the Aravis camera backend needs the Debian packages ${missing[*]}" \
+             "(run this as root, or: sudo apt-get install ${missing[*]}); until then it is" \
+             "not installed and its tests are skipped" >&2
+        return 1
+    fi
+    echo "dev.sh: installing ${missing[*]} with apt-get (Aravis camera backend)" >&2
+    export DEBIAN_FRONTEND=noninteractive
+    # (set -e does not reach into a function run as an if condition: fail explicitly)
+    if ! apt-get update -q >&2 \
+            || ! apt-get install -y -q --no-install-recommends "${missing[@]}" >&2; then
+        echo "dev.sh: apt-get could not install ${missing[*]}" >&2
+        exit 1
     fi
 }
 

@@ -22,10 +22,11 @@ from .base import Camera, CameraFrame
 __all__ = ["BACKENDS", "Camera", "CameraFrame", "camera_class", "open_camera"]
 
 #: Backend name -> ``"module:Class"``; the module is imported on first use.
-#: Planned: "aravis", "v4l2".
 BACKENDS: dict[str, str] = {
+    "aravis": "oralnav.drivers.camera.aravis:AravisCamera",
     "replay": "oralnav.drivers.camera.replay:ReplayCamera",
     "sim": "oralnav.drivers.camera.sim:SimCamera",
+    "v4l2": "oralnav.drivers.camera.v4l2:V4L2Camera",
 }
 
 
