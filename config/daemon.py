@@ -21,8 +21,9 @@ from oralnav.sim.scene import Scene
 
 from .calibration import Calibration, load_calibration
 from .cell import load_cell_config
+from .errors import ConfigError
 from .fields import load_fields
-from .hardware import ArmSection, EffectorSection
+from .hardware import ArmSection, CameraSection, EffectorSection, StereoSection
 from .loader import Float, Int, Strict, read_toml, resolve_file, validate
 from .rig import load_rig
 from .scene import load_scene
@@ -242,6 +243,8 @@ class DaemonFile(Strict):
     inputs: InputsSection = InputsSection()
     arm: ArmSection = ArmSection()
     effector: EffectorSection = EffectorSection()
+    cameras: dict[str, CameraSection] = Field(default_factory=dict)
+    stereo: StereoSection = StereoSection()
     api: ApiSection = ApiSection()
 
     @model_validator(mode="after")
@@ -250,10 +253,10 @@ class DaemonFile(Strict):
         if self.cell.backend == "sim":
             real = [f"[{k}] backend = {b!r}" for k, b in
                     (("arm", self.arm.backend), ("effector", self.effector.backend))
-                    if b != "sim"]
+                    if b != "sim"] + [f"[cameras.{n}]" for n in self.cameras]
             if real:
                 raise ValueError("the simulated cell ([cell] backend = \"sim\") drives the "
-                                 "simulated arm and wrist; " + ", ".join(real)
+                                 "simulated arm, wrist and cameras; " + ", ".join(real)
                                  + " needs [cell] backend = \"hardware\"")
         return self
 
@@ -280,6 +283,26 @@ class DaemonConfig:
         return [k for k in NAVIGATION_CALIBRATIONS if k not in self.calibrations]
 
 
+def _check_cameras(path: Path, doc: DaemonFile, rig: Rig, endo: Rig | None) -> None:
+    """Each ``[cameras.<name>]`` names a camera of the rigs, and its driver accepts its
+    options (the constructor checks them and does no I/O)."""
+    from oralnav.drivers.camera import camera_class
+    from oralnav.drivers.errors import DriverInitError
+
+    known = list(rig.names) + (list(endo.names) if endo is not None else [])
+    for name, cam in doc.cameras.items():
+        if name not in known:
+            raise ConfigError(path, f"cameras.{name}", f"no camera {name!r} in the rigs "
+                              f"(cameras: {', '.join(known)})")
+        try:
+            camera_class(cam.backend)(name=name, **cam.driver_options())
+        except DriverInitError as exc:
+            raise ConfigError(path, f"cameras.{name}", str(exc)) from None
+        except TypeError as exc:  # an option the backend does not take
+            raise ConfigError(path, f"cameras.{name}", f"an option the {cam.backend} backend "
+                              f"does not take (docs/cameras.md): {exc}") from None
+
+
 def default_config_path() -> Path:
     """The embedded simulation default, ``config/sim.toml``."""
     return Path(str(resources.files("oralnav.config").joinpath("sim.toml")))
@@ -302,6 +325,7 @@ def load_config(path: str | Path | None = None) -> DaemonConfig:
     scene = load_scene(scene_path) if scene_path is not None else None
     cell_cfg = (load_cell_config(resolve_file(path, "cell.sim_cell", cell.sim_cell))
                 if cell.sim_cell else None)
+    _check_cameras(path, doc, rig, endo)
     if doc.effector.canopen is not None and doc.effector.canopen.eds:
         resolve_file(path, "effector.canopen.eds", doc.effector.canopen.eds)  # must exist
     cals: dict[str, Calibration] = {}

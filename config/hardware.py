@@ -1,7 +1,8 @@
 """Configuration sections of the real cell's devices (docs/formats.md): the arm, ``[arm]``
-with ``[arm.ur]``, and the tendon-driven end-effector on its drive, ``[effector]`` with
-``[effector.canopen]`` or ``[effector.modbus]``. Validated with the daemon configuration;
-each section turns into the backend's constructor arguments with ``driver_options``.
+with ``[arm.ur]``; the tendon-driven end-effector on its drive, ``[effector]`` with
+``[effector.canopen]`` or ``[effector.modbus]``; the cameras, ``[cameras.<name>]``, and how
+the stereo pair is matched, ``[stereo]``. Validated with the daemon configuration; each
+section turns into the backend's constructor arguments with ``driver_options``.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from oralnav.drivers.effector.kinematics import (
     DEFAULT_COUPLING,
@@ -24,7 +25,8 @@ from oralnav.drivers.errors import DriverInitError
 
 from .loader import Float, Int, Strict
 
-__all__ = ["ArmSection", "CanopenSection", "EffectorSection", "ModbusSection", "URSection"]
+__all__ = ["ArmSection", "CameraSection", "CanopenSection", "EffectorSection", "ModbusSection",
+           "StereoSection", "URSection"]
 
 Four = tuple[Float, Float, Float, Float]
 
@@ -173,3 +175,30 @@ class EffectorSection(Strict):
             bus["node_ids"] = tuple(bus["node_ids"])
             return opts | bus
         return opts | self.modbus.model_dump()
+
+
+class CameraSection(BaseModel):
+    """``[cameras.<name>]``: one camera of the rig, ``<name>`` as the rig names it.
+    ``backend`` picks the driver; every other key is that driver's own option
+    (docs/cameras.md), checked by the driver when the configuration loads."""
+
+    model_config = ConfigDict(extra="allow", frozen=True, allow_inf_nan=False)
+
+    backend: Literal["aravis", "v4l2", "replay"]
+
+    def driver_options(self) -> dict[str, Any]:
+        """The backend's constructor arguments (lists become tuples: TOML has no tuple)."""
+        return {k: tuple(v) if isinstance(v, list) else v
+                for k, v in (self.model_extra or {}).items()}
+
+
+class StereoSection(Strict):
+    """``[stereo]``: how the stereo rig's two cameras' frames are paired
+    (``oralnav.drivers.camera.stereo``)."""
+
+    by: Literal["timestamp", "counter"] = "timestamp"
+    # s: frames further apart than this are not a pair (timestamp pairing)
+    tolerance: Annotated[Float, Field(gt=0, le=0.1)] = 0.005
+    # whose timestamps: "host" (when the frame arrived) or "device" (the cameras' own
+    # clocks, for PTP-synchronised cameras)
+    clock: Literal["host", "device"] = "host"

@@ -135,6 +135,11 @@ async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
                              progress=lambda msg: _log(msg))
         # guided insertion places the tracked opener in the base with the same hand-eye
         core.set_hand_eye(nav.calibration.T_B_C)
+    capture = None
+    if cfg.cell is None and s.cameras:
+        from .capture_task import HardwareCapture
+
+        capture = HardwareCapture(core, cfg)  # builds the cameras; they open in the group
     keep_off_control_cpu(s.control.cpu)
     await control.start()
     await inputs.start()
@@ -143,6 +148,8 @@ async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
             await tg.start(core.supervise)
             if nav is not None:
                 await tg.start(nav.run)
+            if capture is not None:
+                await tg.start(capture.run)
             port = await tg.start(partial(serve, allow_remote=s.api.allow_remote), app,
                                   s.api.host, api_port or s.api.port)
             _log(f"serving the operator API on http://{s.api.host}:{port} "

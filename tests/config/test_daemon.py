@@ -248,8 +248,18 @@ BROKEN = {
                                "lookahead_time = 0.5\n", "[arm.ur] lookahead_time:",
                                ("less than or equal to 0.2",)),
     "sim_cell_with_real_arm": (GOOD + '\n[arm]\nbackend = "ur"\n[arm.ur]\nhost = "x"\n',
-                               ": the simulated cell", ("drives the simulated arm and wrist",
+                               ": the simulated cell", ("drives the simulated arm",
                                                  "[arm] backend = 'ur'")),
+    "camera_not_in_the_rigs": (HW + '\n[cameras.middle]\nbackend = "v4l2"\n'
+                               'device = "/dev/video0"\n', "[cameras] middle:",
+                               ("no camera 'middle' in the rigs", "left, right")),
+    "camera_option_unknown": (HW + '\n[cameras.endoscope]\nbackend = "v4l2"\n'
+                              'device = "/dev/video0"\nzoom = 3\n', "[cameras] endoscope:",
+                              ("the v4l2 backend does not take", "zoom")),
+    "camera_backend_unknown": (HW + '\n[cameras.left]\nbackend = "gige"\n',
+                               "[cameras.left] backend:", ("'aravis', 'v4l2' or 'replay'",)),
+    "sim_cell_with_cameras": (GOOD + '\n[cameras.left]\nbackend = "replay"\npath = "x"\n',
+                              ": the simulated cell", ("[cameras.left]",)),
     "inputs_heartbeat_bound": (GOOD + '\n[inputs]\nbackend = "serial"\nport = "/dev/x"\n'
                                "heartbeat_timeout = 5.0\n", "[inputs] heartbeat_timeout:",
                                ("less than or equal to 1",)),

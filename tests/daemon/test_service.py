@@ -4,6 +4,7 @@ audit log intact)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -14,6 +15,8 @@ import time
 from pathlib import Path
 
 import httpx
+
+from ..drivers.test_camera_aravis import ARAVIS_MISSING, running_fakes
 
 
 def _free_port() -> int:
@@ -133,8 +136,9 @@ def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:
     """Issue 8 (done when: the daemon runs with the fake devices in place of the simulated
     ones): oralnavd on a [cell] backend = "hardware" configuration drives the UR arm through
     ur_rtde against the fake UR controller, the wrist over Modbus TCP against the emulated
-    drive unit, and reads the serial e-stop box; /status shows all three connected and the
-    cell READY; the box's e-stop latches ESTOP; SIGTERM exits cleanly."""
+    drive unit, reads the serial e-stop box and the stereo pair from two simulated GigE
+    cameras through Aravis; /status shows them connected, stereo pairs tracked and the cell
+    READY; the box's e-stop latches ESTOP; SIGTERM exits cleanly."""
     import logging
 
     from oralnav.sim.modbus_drive import ModbusDriveServer
@@ -145,8 +149,17 @@ def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:
     config_dir = Path(__file__).resolve().parents[2] / "config"
     link = tmp_path / "osio"
     ur_host = f"127.84.{os.getpid() % 250}.1"
-    with FakeURControllerProcess(ur_host) as ur, ModbusDriveServer() as drive, \
-            SerialBox(rate_hz=100, link=link) as box:
+    cams = ""
+    with contextlib.ExitStack() as stack:
+        ur = stack.enter_context(FakeURControllerProcess(ur_host))
+        drive = stack.enter_context(ModbusDriveServer())
+        box = stack.enter_context(SerialBox(rate_hz=100, link=link))
+        if ARAVIS_MISSING is None:  # the stereo pair on two simulated GigE cameras
+            make = stack.enter_context(running_fakes())
+            for name in ("left", "right"):
+                cams += (f'[cameras.{name}]\nbackend = "aravis"\ncamera_id = '
+                         f'"{make().address}"\nregion = [0, 0, 1920, 1200]\nframe_rate = 10.0\n')
+            cams += '[stereo]\nby = "timestamp"\ntolerance = 0.01\nclock = "device"\n'
         (tmp_path / "cell.toml").write_text(f"""
 name = "hardware-test"
 [cell]
@@ -174,7 +187,7 @@ silence_timeout = 0.3
 [effector.modbus]
 host = "127.0.0.1"
 port = {drive.port}
-""")
+""" + cams)
         port = _free_port()
         env = dict(os.environ, STATE_DIRECTORY=str(tmp_path), RUNTIME_DIRECTORY=str(tmp_path))
         proc = subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main", "--config",
@@ -195,6 +208,11 @@ port = {drive.port}
             loop = st["control_loop"]
             assert loop["arm_connected"] and loop["wrist_connected"], loop
             assert loop["wrist_fault"] is None and st["inputs"]["connected"]
+            if cams:  # stereo pairs arrive and are tracked (the fakes show no markers)
+                while st["rates_hz"].get("tracking stereo", 0.0) <= 0.0:
+                    assert time.monotonic() < deadline, st["rates_hz"]
+                    time.sleep(0.1)
+                    st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
             box.press_estop()
             deadline = time.monotonic() + 10
             while st["safety"]["state"] != "ESTOP":

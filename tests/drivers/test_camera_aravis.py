@@ -9,21 +9,16 @@ without root only ``127.0.0.1`` is used, so tests needing two cameras are skippe
 
 The tests are skipped, with the reason, only where PyGObject's Aravis 0.8 or the fake camera
 are missing; ``./dev.sh test`` installs both (as root), so CI runs them. The helpers here
-(:func:`running_fakes`, :class:`FakeGvCamera`) also serve the stereo and contract suites.
+(``oralnav.sim.gige_fake``: :func:`running_fakes`, :class:`FakeGvCamera`) also serve the
+stereo and contract suites and the daemon's hardware-cell test.
 """
 
 from __future__ import annotations
 
 import contextlib
-import os
-import random
 import shutil
-import signal
-import socket
-import subprocess
-import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import anyio
 import numpy as np
@@ -31,9 +26,8 @@ import pytest
 
 from oralnav.drivers.camera import camera_class, open_camera
 from oralnav.drivers.errors import DriverError, DriverInitError, DriverIOError, DriverTimeoutError
-
-FAKE = "arv-fake-gv-camera-0.8"
-GVCP_PORT = 3956
+from oralnav.sim.gige_fake import FAKE, FakeGvCamera, NoLoopbackAddress
+from oralnav.sim.gige_fake import running_fakes as fakes_on_loopback
 
 
 def _gi_missing() -> str | None:
@@ -68,117 +62,21 @@ if GI_MISSING is None:
 
 
 # -- fake cameras -------------------------------------------------------------------------
-
-
-def _udp_bound(address: str, port: int) -> bool:
-    """Whether a UDP socket of this network namespace is bound to address:port."""
-    want = f"{socket.inet_aton(address)[::-1].hex().upper()}:{port:04X}"
-    for table in ("/proc/net/udp",):
-        try:
-            with open(table) as fh:
-                next(fh, None)
-                if any(line.split()[1] == want for line in fh if len(line.split()) > 1):
-                    return True
-        except OSError:
-            return False
-    return False
-
-
-def _can_alias() -> bool:
-    return os.geteuid() == 0 and shutil.which("ip") is not None
+# (oralnav.sim.gige_fake: the fake camera process and its loopback address)
 
 
 @contextlib.contextmanager
-def loopback_address() -> Iterator[str]:
-    """A loopback address whose GVCP port is free, for one fake camera.
+def running_fakes() -> Iterator[Callable[..., FakeGvCamera]]:
+    """:func:`oralnav.sim.gige_fake.running_fakes`, skipping the test where no loopback
+    address can be had for one more fake (not root, 127.0.0.1 taken)."""
+    with fakes_on_loopback() as make:
+        def make_or_skip(lost_ratio: int = 0) -> FakeGvCamera:
+            try:
+                return make(lost_ratio)
+            except NoLoopbackAddress as exc:
+                pytest.skip(str(exc))
 
-    As root: a fresh ``127.83.x.y/32`` alias on ``lo``, removed on exit. Otherwise
-    ``127.0.0.1`` when its port 3956 is free; else the test is skipped.
-    """
-    if _can_alias():
-        for _ in range(20):
-            address = f"127.83.{random.randint(1, 254)}.{random.randint(1, 254)}"
-            if _udp_bound(address, GVCP_PORT):
-                continue
-            done = subprocess.run(["ip", "addr", "add", f"{address}/32", "dev", "lo"],
-                                  capture_output=True, text=True)
-            if done.returncode == 0:
-                try:
-                    yield address
-                finally:
-                    subprocess.run(["ip", "addr", "del", f"{address}/32", "dev", "lo"],
-                                   capture_output=True)
-                return
-            if "File exists" not in done.stderr:
-                break  # not allowed (no CAP_NET_ADMIN): fall back to 127.0.0.1
-    if _udp_bound("127.0.0.1", GVCP_PORT):
-        pytest.skip("UDP 127.0.0.1:3956 is taken (by another fake camera?) and adding a "
-                    "loopback alias for this one needs root")
-    yield "127.0.0.1"
-
-
-class FakeGvCamera:
-    """One ``arv-fake-gv-camera-0.8`` process: a GigE Vision camera on ``address``."""
-
-    def __init__(self, address: str, serial: str, lost_ratio: int = 0) -> None:
-        self.address = address
-        self.serial = serial
-        self.lost_ratio = lost_ratio
-        self._proc: subprocess.Popen | None = None
-        self._log = tempfile.TemporaryFile()
-
-    @property
-    def device_id(self) -> str:
-        return f"Aravis-Fake-{self.serial}"
-
-    @property
-    def running(self) -> bool:
-        return self._proc is not None and self._proc.poll() is None
-
-    def start(self, timeout: float = 5.0) -> None:
-        assert not self.running
-        command = [FAKE, "-i", self.address, "-s", self.serial]
-        if self.lost_ratio:
-            command += ["-r", str(self.lost_ratio)]
-        self._proc = subprocess.Popen(command, stdin=subprocess.DEVNULL,
-                                      stdout=subprocess.DEVNULL, stderr=self._log)
-        deadline = time.monotonic() + timeout
-        while not _udp_bound(self.address, GVCP_PORT):
-            if self._proc.poll() is not None or time.monotonic() > deadline:
-                self.kill()
-                self._log.seek(0)
-                raise RuntimeError(f"{FAKE} on {self.address} did not come up: "
-                                   f"{self._log.read().decode(errors='replace').strip()}")
-            time.sleep(0.01)
-
-    def kill(self) -> None:
-        """SIGKILL: the camera vanishes as if unplugged."""
-        proc, self._proc = self._proc, None
-        if proc is not None and proc.poll() is None:
-            proc.send_signal(signal.SIGKILL)
-        if proc is not None:
-            proc.wait(5)
-
-    def close(self) -> None:
-        self.kill()
-        self._log.close()
-
-
-@contextlib.contextmanager
-def running_fakes() -> Iterator:
-    """``make(lost_ratio=0) -> FakeGvCamera``: started fakes, each on its own address,
-    all killed (and their addresses removed) on exit."""
-    with contextlib.ExitStack() as stack:
-        def make(lost_ratio: int = 0) -> FakeGvCamera:
-            address = stack.enter_context(loopback_address())
-            fake = FakeGvCamera(address, f"OX{random.randrange(16**6):06X}", lost_ratio)
-            stack.callback(fake.close)
-            fake.start()
-            fakes.append(fake)
-            return fake
-
-        fakes: list[FakeGvCamera] = []
-        yield make
+        yield make_or_skip
 
 
 @pytest.fixture
