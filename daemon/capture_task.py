@@ -8,10 +8,12 @@ read, tracked and published into the daemon core.
   is tracked in a worker thread (NVG-BA, predictive ROI) and each field found is published
   as ``T_C_<field>`` (``RM``, ``OM``, ``EM`` for the robot, opener and effector fields) or
   ``T_En_EM`` for the endoscope, stamped with the capture time; the rates go to the status.
-- A camera that fails to start, or delivers images of another size than its calibration,
-  is a FAULT naming it (the daemon keeps serving); a read error is logged and the read
-  retried: the drivers reconnect by themselves, and a camera whose counter stops trips the
-  camera-stall watchdog. A tracking failure is a FAULT too, never the daemon's end.
+- A camera that fails to start is a FAULT naming it, and the start is retried with
+  back-off, so the cell recovers when the camera returns; one that delivers images of
+  another size than its calibration is a FAULT too. The daemon keeps serving. A read
+  error is logged and the read retried: the drivers reconnect by themselves, and a camera
+  whose counter stops trips the camera-stall watchdog. A tracking failure is a FAULT too,
+  never the daemon's end.
 
 The two-stage navigation on a hardware cell (the capture instant's arm pose, the entry pose
 in the configuration) is not wired yet; the simulated cell's ``NavigationTask`` runs it.
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from typing import Any
 
 import anyio
@@ -43,34 +46,46 @@ log = logging.getLogger(__name__)
 FIELD_FRAMES = {"robot": "RM", "opener": "OM", "effector": "EM"}
 #: Seconds between repeated read-error messages of one camera.
 _LOG_EVERY_S = 5.0
+#: Back-off (first, max) s between attempts to start cameras that did not start.
+START_RETRY_S = (1.0, 10.0)
 
 
 class HardwareCapture:
-    """See the module docstring. Builds the cameras (no I/O) at construction."""
+    """See the module docstring. Builds the cameras once (no I/O) at construction, so a
+    bad option is an error at the daemon's start."""
 
     def __init__(self, core: DaemonCore, cfg: DaemonConfig) -> None:
         self.core = core
         s = cfg.settings
-        cams = {name: open_camera(c.backend, name=name, **c.driver_options())
-                for name, c in s.cameras.items()}
+
+        def camera(name: str) -> Camera:
+            c = s.cameras[name]
+            return open_camera(c.backend, name=name, **c.driver_options())
+
         fields = list(cfg.fields.values())
-        self.sources: list[tuple[str, Any, Tracker, str]] = []  # (name, stream, tracker, frame)
+        # (name, stream factory, tracker, frame): a camera starts only once, so every
+        # attempt to start builds the stream afresh
+        self.sources: list[tuple[str, Callable[[], Any], Tracker, str]] = []
+        names = set(s.cameras)
         left, right = cfg.rig.names[0], cfg.rig.names[-1]
-        if left in cams and right in cams and left != right:
-            stereo = StereoCamera(cams.pop(left), cams.pop(right), by=s.stereo.by,
-                                  tolerance=s.stereo.tolerance, clock=s.stereo.clock)
-            self.sources.append(("stereo", stereo, Tracker(cfg.rig, fields, method="nvgba",
-                                                           mode="predict"), "C"))
+        if left in names and right in names and left != right:
+            names -= {left, right}
+            self.sources.append(("stereo", lambda: StereoCamera(
+                camera(left), camera(right), by=s.stereo.by, tolerance=s.stereo.tolerance,
+                clock=s.stereo.clock), Tracker(cfg.rig, fields, method="nvgba",
+                                               mode="predict"), "C"))
         endo = cfg.endoscope_rig
         effector = [f for f in fields if f.name == "effector"]
         if endo is not None and effector:
-            for name in list(cams):
-                if name in endo.names:
-                    self.sources.append((name, _Single(cams.pop(name)),
-                                         Tracker(endo, effector, method="nvgba",
-                                                 mode="predict"), "En"))
-        for name in cams:  # a stereo camera without its partner: read, not tracked
-            log.warning("camera %r: not part of a complete rig here; it is not tracked", name)
+            for name in sorted(names & set(endo.names)):
+                names.discard(name)
+                self.sources.append((name, lambda n=name: _Single(camera(n)),
+                                     Tracker(endo, effector, method="nvgba", mode="predict"),
+                                     "En"))
+        for name in sorted(names):  # a stereo camera without its partner
+            log.warning("camera %r: not part of a complete rig here; it is not read", name)
+        for _, make, _, _ in self.sources:
+            make()  # build once now: a bad option shows at start, not in the task
         self.frames: dict[str, int] = {}
 
     async def run(self, *, task_status: anyio.abc.TaskStatus[None] =
@@ -80,15 +95,21 @@ class HardwareCapture:
                 tg.start_soon(self._capture, *source)
             task_status.started()
 
-    async def _capture(self, name: str, stream: Any, tracker: Tracker, frame: str) -> None:
+    async def _capture(self, name: str, make: Callable[[], Any], tracker: Tracker,
+                       frame: str) -> None:
         core = self.core
-        try:
-            await stream.start()
-        except DriverError as exc:
-            log.error("cameras %s did not start: %s", name, exc)
-            core.supervisor.fault(core.clock(), f"camera {name}", f"did not start: {exc}")
-            await stream.close()
-            return
+        delay = START_RETRY_S[0]
+        while True:
+            stream = make()
+            try:
+                await stream.start()
+                break
+            except DriverError as exc:  # a wrong address, a camera that is off or busy
+                log.error("cameras %s did not start: %s (retrying in %.0f s)", name, exc, delay)
+                core.supervisor.fault(core.clock(), f"camera {name}", f"did not start: {exc}")
+                await stream.close()
+                await anyio.sleep(delay)  # the cell recovers when the camera returns
+                delay = min(2 * delay, START_RETRY_S[1])
         wrong = [f"{cam} delivers {w}x{h} px, its calibration is {rw}x{rh}"
                  for cam, (w, h) in _sizes(stream).items()
                  for rw, rh in [tracker.rig[cam].size] if (w, h) != (rw, rh)]

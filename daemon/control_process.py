@@ -21,6 +21,7 @@ import gc
 import logging
 import multiprocessing as mp
 import os
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -128,6 +129,40 @@ def _settle_heap() -> None:
     gc.freeze()
 
 
+#: Back-off (first, max) s between attempts to start a device that could not be reached.
+START_RETRY_S = (1.0, 10.0)
+
+
+def _start_or_retry(device: Any) -> None:
+    """Start ``device``; one that cannot be reached now (a wrong address, a controller that
+    is off, a recipe it refuses) leaves the loop running with the device disconnected (the
+    loop latches its stop and the status names it), and a thread keeps trying to start it
+    with back-off, so the cell recovers when the device returns."""
+    from oralnav.drivers.errors import DriverInitError
+
+    try:
+        anyio.run(device.start)
+        return
+    except DriverInitError as exc:
+        log.error("%r did not start: %s; retrying in the background", device, exc)
+
+    def retry() -> None:
+        delay = START_RETRY_S[0]
+        while True:
+            time.sleep(delay)
+            try:
+                anyio.run(device.start)
+            except DriverInitError as exc:
+                log.warning("%r still not started: %s", device, exc)
+                delay = min(2 * delay, START_RETRY_S[1])
+            else:
+                log.warning("%r started", device)
+                return
+
+    threading.Thread(target=retry, name=f"start-{getattr(device, 'name', 'device')}",
+                     daemon=True).start()
+
+
 def _child(spec: ProcessSpec, names: dict[str, str], ready: Any, plans: Any = None) -> None:
     """Entry point of the control process. ``plans``: the read end of the plan channel
     (a ``multiprocessing`` connection; its descriptor is read raw, see plan_channel)."""
@@ -152,9 +187,9 @@ def _child(spec: ProcessSpec, names: dict[str, str], ready: Any, plans: Any = No
     arm = _build("arm", spec.arm, clock)
     eff = _build("effector", spec.effector, clock) if spec.effector else None
     try:
-        anyio.run(arm.start)
-        if eff is not None:
-            anyio.run(eff.start)
+        for d in (arm, eff):
+            if d is not None:
+                _start_or_retry(d)
         loop = ControlLoop(arm, eff, spec.settings, nav, cmd, status, spec.limiter,
                            clock=clock.now)
         sims = [d for d in (arm, eff) if d is not None and hasattr(d, "advance")]

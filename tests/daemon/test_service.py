@@ -226,3 +226,92 @@ port = {drive.port}
                 proc.kill()
                 proc.communicate()
     assert proc.returncode == 0, err[-3000:]
+
+
+def test_an_unreachable_arm_and_camera_fault_the_cell_and_recover(tmp_path: Path) -> None:
+    """Issue 8 (bad input: a wrong IP, recovery when the device returns): oralnavd on a
+    hardware cell whose UR controller and stereo cameras are not there yet comes up and
+    serves; the cell is in FAULT naming the arm and the cameras; once the controller and
+    the cameras appear, the arm connects and pairs are tracked, and an operator reset
+    brings the cell to READY."""
+    from oralnav.sim.ur_controller import FakeURControllerProcess
+
+    config_dir = Path(__file__).resolve().parents[2] / "config"
+    ur_host = f"127.84.{os.getpid() % 250}.2"
+    with contextlib.ExitStack() as stack:
+        cams, addresses = "", []
+        if ARAVIS_MISSING is None:
+            from oralnav.sim.gige_fake import FakeGvCamera, loopback_address
+
+            for name in ("left", "right"):
+                addresses.append(stack.enter_context(loopback_address()))
+                cams += (f'[cameras.{name}]\nbackend = "aravis"\ncamera_id = '
+                         f'"{addresses[-1]}"\nregion = [0, 0, 1920, 1200]\nframe_rate = 10.0\n')
+        (tmp_path / "cell.toml").write_text(f"""
+name = "hardware-test"
+[cell]
+backend = "hardware"
+rig = "{config_dir}/rigs/stereo.toml"
+fields = "{config_dir}/fields/cell.toml"
+[safety]
+driver_silence = 0.5
+max_period_lateness = 0.1
+deadline_misses = 10
+[arm]
+backend = "ur"
+[arm.ur]
+host = "{ur_host}"
+watchdog_timeout = 0.25
+connect_timeout = 0.5
+""" + cams)
+        port = _free_port()
+        env = dict(os.environ, STATE_DIRECTORY=str(tmp_path), RUNTIME_DIRECTORY=str(tmp_path))
+        proc = subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main", "--config",
+                                 str(tmp_path / "cell.toml"), "--api-port", str(port)],
+                                env=env, cwd=tmp_path, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            base = f"http://127.0.0.1:{port}"
+            tokens = _wait_for_api(proc, base, tmp_path)
+            obs = {"Authorization": f"Bearer {tokens['observer']}"}
+            op = {"Authorization": f"Bearer {tokens['operator']}"}
+
+            def status() -> dict:
+                return httpx.get(f"{base}/status", headers=obs, timeout=2).json()
+
+            def until(pred, what: str, timeout: float = 30.0) -> dict:
+                deadline = time.monotonic() + timeout
+                while not pred(st := status()):
+                    assert time.monotonic() < deadline, (what, st["safety"], st["rates_hz"])
+                    time.sleep(0.1)
+                return st
+
+            st = until(lambda s: s["safety"]["state"] == "FAULT", "FAULT")
+            assert not st["control_loop"]["arm_connected"]
+            why = str(st["safety"]["reasons"])
+            assert "arm" in why, why
+            if cams:
+                st = until(lambda s: "camera stereo" in str(s["safety"]["reasons"]),
+                           "the cameras' fault")
+                for address in addresses:
+                    fake = FakeGvCamera(address, f"OX{address.split('.')[-1]:0>6}")
+                    stack.callback(fake.close)
+                    fake.start()
+            stack.enter_context(FakeURControllerProcess(ur_host))
+            until(lambda s: s["control_loop"]["arm_connected"], "the arm connected")
+            if cams:
+                until(lambda s: s["rates_hz"].get("tracking stereo", 0.0) > 0.0,
+                      "stereo pairs tracked")
+            deadline = time.monotonic() + 20
+            while httpx.post(f"{base}/reset", headers=op, timeout=5).status_code != 200:
+                assert time.monotonic() < deadline, status()["safety"]
+                time.sleep(0.2)
+            until(lambda s: s["safety"]["state"] == "READY", "READY")
+            proc.send_signal(signal.SIGTERM)
+            out, err = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert proc.returncode == 0, err[-3000:]
+    assert f"{ur_host}" in err  # the log names the controller it could not reach
