@@ -138,7 +138,9 @@ def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:
     ur_rtde against the fake UR controller, the wrist over Modbus TCP against the emulated
     drive unit, reads the serial e-stop box and the stereo pair from two simulated GigE
     cameras through Aravis; /status shows them connected, stereo pairs tracked and the cell
-    READY; the box's e-stop latches ESTOP; SIGTERM exits cleanly."""
+    READY; a protective stop faults the cell until the operator's POST /recover/arm (the
+    dashboard recovery) and a reset; the box's e-stop latches ESTOP; SIGTERM exits
+    cleanly."""
     import logging
 
     from oralnav.sim.modbus_drive import ModbusDriveServer
@@ -151,7 +153,7 @@ def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:
     ur_host = f"127.84.{os.getpid() % 250}.1"
     cams = ""
     with contextlib.ExitStack() as stack:
-        ur = stack.enter_context(FakeURControllerProcess(ur_host))
+        ur = stack.enter_context(FakeURControllerProcess(ur_host, unlock_delay=0.2))
         drive = stack.enter_context(ModbusDriveServer())
         box = stack.enter_context(SerialBox(rate_hz=100, link=link))
         if ARAVIS_MISSING is None:  # the stereo pair on two simulated GigE cameras
@@ -213,6 +215,26 @@ port = {drive.port}
                     assert time.monotonic() < deadline, st["rates_hz"]
                     time.sleep(0.1)
                     st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
+            # a protective stop: FAULT; reset refused until the operator's dashboard recovery
+            op = {"Authorization": f"Bearer {tokens['operator']}"}
+            ur.inject_protective_stop()
+            deadline = time.monotonic() + 10
+            while st["safety"]["state"] != "FAULT":
+                assert time.monotonic() < deadline, st["safety"]
+                time.sleep(0.05)
+                st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
+            assert httpx.post(f"{base}/reset", headers=op, timeout=5).status_code == 409
+            time.sleep(0.3)  # the controller's unlock delay
+            assert httpx.post(f"{base}/recover/arm", headers=op, timeout=5).status_code == 200
+            deadline = time.monotonic() + 20
+            while httpx.post(f"{base}/reset", headers=op, timeout=5).status_code != 200:
+                assert time.monotonic() < deadline, httpx.get(
+                    f"{base}/status", headers=head, timeout=2).json()["safety"]
+                time.sleep(0.2)
+            while st["safety"]["state"] != "READY":
+                assert time.monotonic() < deadline, st["safety"]
+                time.sleep(0.05)
+                st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
             box.press_estop()
             deadline = time.monotonic() + 10
             while st["safety"]["state"] != "ESTOP":
