@@ -40,6 +40,43 @@ def _wait_for_api(proc: subprocess.Popen, base: str, folder: Path) -> dict[str, 
     return dict(line.split() for line in (folder / "tokens.txt").read_text().splitlines())
 
 
+def _hardware_cell(folder: Path, devices: str, cameras: str = "") -> Path:
+    """A hardware-cell configuration in ``folder``: the shipped rig and fields, safety
+    limits for a busy test machine, then ``devices`` and ``cameras`` (TOML tables)."""
+    config_dir = Path(__file__).resolve().parents[2] / "config"
+    path = folder / "cell.toml"
+    path.write_text(f"""
+name = "hardware-test"
+[cell]
+backend = "hardware"
+rig = "{config_dir}/rigs/stereo.toml"
+fields = "{config_dir}/fields/cell.toml"
+[safety]
+driver_silence = 0.5
+max_period_lateness = 0.1
+deadline_misses = 10
+""" + devices + cameras)
+    return path
+
+
+def _stereo_cameras(addresses: list[str]) -> str:
+    """``[cameras.left]`` and ``[cameras.right]`` on simulated GigE cameras at
+    ``addresses``, full sensor size (the rig's calibration) at 10 Hz."""
+    return "".join(f'[cameras.{name}]\nbackend = "aravis"\ncamera_id = "{address}"\n'
+                   'region = [0, 0, 1920, 1200]\nframe_rate = 10.0\n'
+                   for name, address in zip(("left", "right"), addresses, strict=True))
+
+
+def _start_daemon(config: Path, folder: Path) -> tuple[subprocess.Popen, str]:
+    """oralnavd on ``config`` with its state in ``folder``; the process and its API URL."""
+    port = _free_port()
+    env = dict(os.environ, STATE_DIRECTORY=str(folder), RUNTIME_DIRECTORY=str(folder))
+    proc = subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main", "--config",
+                             str(config), "--api-port", str(port)], env=env, cwd=folder,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return proc, f"http://127.0.0.1:{port}"
+
+
 def test_sigterm_stops_the_robot_then_exits_cleanly(tmp_path: Path) -> None:
     """Start oralnavd on the embedded sim configuration, check /health and an operator
     command over HTTP, then SIGTERM: the daemon latches the stop, the control loop confirms
@@ -148,7 +185,6 @@ def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:
     from oralnav.sim.ur_controller import FakeURControllerProcess
 
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-    config_dir = Path(__file__).resolve().parents[2] / "config"
     link = tmp_path / "osio"
     ur_host = f"127.84.{os.getpid() % 250}.1"
     cams = ""
@@ -158,20 +194,9 @@ def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:
         box = stack.enter_context(SerialBox(rate_hz=100, link=link))
         if ARAVIS_MISSING is None:  # the stereo pair on two simulated GigE cameras
             make = stack.enter_context(running_fakes())
-            for name in ("left", "right"):
-                cams += (f'[cameras.{name}]\nbackend = "aravis"\ncamera_id = '
-                         f'"{make().address}"\nregion = [0, 0, 1920, 1200]\nframe_rate = 10.0\n')
+            cams = _stereo_cameras([make().address, make().address])
             cams += '[stereo]\nby = "timestamp"\ntolerance = 0.01\nclock = "device"\n'
-        (tmp_path / "cell.toml").write_text(f"""
-name = "hardware-test"
-[cell]
-backend = "hardware"
-rig = "{config_dir}/rigs/stereo.toml"
-fields = "{config_dir}/fields/cell.toml"
-[safety]
-driver_silence = 0.5
-max_period_lateness = 0.1
-deadline_misses = 10
+        config = _hardware_cell(tmp_path, f"""
 [inputs]
 backend = "serial"
 port = "{link}"
@@ -189,15 +214,9 @@ silence_timeout = 0.3
 [effector.modbus]
 host = "127.0.0.1"
 port = {drive.port}
-""" + cams)
-        port = _free_port()
-        env = dict(os.environ, STATE_DIRECTORY=str(tmp_path), RUNTIME_DIRECTORY=str(tmp_path))
-        proc = subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main", "--config",
-                                 str(tmp_path / "cell.toml"), "--api-port", str(port)],
-                                env=env, cwd=tmp_path, stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True)
+""", cams)
+        proc, base = _start_daemon(config, tmp_path)
         try:
-            base = f"http://127.0.0.1:{port}"
             tokens = _wait_for_api(proc, base, tmp_path)
             head = {"Authorization": f"Bearer {tokens['observer']}"}
             deadline = time.monotonic() + 20
@@ -258,42 +277,24 @@ def test_an_unreachable_arm_and_camera_fault_the_cell_and_recover(tmp_path: Path
     brings the cell to READY."""
     from oralnav.sim.ur_controller import FakeURControllerProcess
 
-    config_dir = Path(__file__).resolve().parents[2] / "config"
     ur_host = f"127.84.{os.getpid() % 250}.2"
     with contextlib.ExitStack() as stack:
         cams, addresses = "", []
         if ARAVIS_MISSING is None:
             from oralnav.sim.gige_fake import FakeGvCamera, loopback_address
 
-            for name in ("left", "right"):
-                addresses.append(stack.enter_context(loopback_address()))
-                cams += (f'[cameras.{name}]\nbackend = "aravis"\ncamera_id = '
-                         f'"{addresses[-1]}"\nregion = [0, 0, 1920, 1200]\nframe_rate = 10.0\n')
-        (tmp_path / "cell.toml").write_text(f"""
-name = "hardware-test"
-[cell]
-backend = "hardware"
-rig = "{config_dir}/rigs/stereo.toml"
-fields = "{config_dir}/fields/cell.toml"
-[safety]
-driver_silence = 0.5
-max_period_lateness = 0.1
-deadline_misses = 10
+            addresses = [stack.enter_context(loopback_address()) for _ in range(2)]
+            cams = _stereo_cameras(addresses)
+        config = _hardware_cell(tmp_path, f"""
 [arm]
 backend = "ur"
 [arm.ur]
 host = "{ur_host}"
 watchdog_timeout = 0.25
 connect_timeout = 0.5
-""" + cams)
-        port = _free_port()
-        env = dict(os.environ, STATE_DIRECTORY=str(tmp_path), RUNTIME_DIRECTORY=str(tmp_path))
-        proc = subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main", "--config",
-                                 str(tmp_path / "cell.toml"), "--api-port", str(port)],
-                                env=env, cwd=tmp_path, stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True)
+""", cams)
+        proc, base = _start_daemon(config, tmp_path)
         try:
-            base = f"http://127.0.0.1:{port}"
             tokens = _wait_for_api(proc, base, tmp_path)
             obs = {"Authorization": f"Bearer {tokens['observer']}"}
             op = {"Authorization": f"Bearer {tokens['operator']}"}
