@@ -1,6 +1,7 @@
 """``oralnav``: the command-line tools.
 
     oralnav sim render SCENE.toml --out DIR [--frames N] [--seed N] [--json]
+    oralnav sim peers --out DIR [--no-cameras] [--json]
     oralnav markers print FIELD [--fields FILE] --dpi N --out F.png [--no-label] [--json]
     oralnav config check [FILE] [--json]
     oralnav track --rig RIG --fields FIELDS --image NAME=PATH [...] [--method M] [--json]
@@ -111,6 +112,68 @@ def cmd_sim_render(args: argparse.Namespace) -> int:
 
 
 # -- oralnav markers print ------------------------------------------------------------
+# -- oralnav sim peers ----------------------------------------------------------------
+_PEER_KEYS = """keys (then Enter): e e-stop press/release, p pedal press/release,
+  s protective stop on the arm, f fault on drive axis 1, q quit"""
+
+
+def cmd_sim_peers(args: argparse.Namespace) -> int:
+    """Run a hardware cell of protocol peers until q, end of input or Ctrl-C."""
+    import signal
+
+    def leave(signum: int, frame: object) -> None:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # one is enough: clean up in peace
+        raise KeyboardInterrupt  # unwinds through the peers' clean-up
+
+    signal.signal(signal.SIGTERM, leave)
+    _progress("starting the peers: fake UR controller, Modbus drive unit, serial e-stop "
+              "box" + ("" if args.no_cameras else ", simulated GigE cameras") + "...")
+    try:
+        _run_peers(args)
+    except KeyboardInterrupt:  # a signal while starting or stopping: cleaned up already
+        pass
+    _progress("peers stopped")
+    return 0
+
+
+def _run_peers(args: argparse.Namespace) -> None:
+    import signal
+
+    from .peers import HardwarePeers
+
+    with HardwarePeers(args.out, cameras=not args.no_cameras) as peers:
+        path = peers.write_config()
+        doc = {"config": str(path), "ur_host": peers.ur.host, "modbus_port": peers.drive.port,
+               "estop": str(peers.box.link), "cameras": peers.camera_addresses}
+        _emit(args, doc, f"peers running; configuration {path}\n"
+                         f"  run: oralnavd --config {path}\n{_PEER_KEYS}")
+        sys.stdout.flush()
+        try:
+            for line in sys.stdin:
+                key = line.strip().lower()[:1]
+                if key == "q":
+                    break
+                if key == "e":
+                    (peers.box.release_estop if peers.box.estop else peers.box.press_estop)()
+                    _progress(f"e-stop {'pressed' if peers.box.estop else 'released'}")
+                elif key == "p":
+                    (peers.box.release_pedal if peers.box.pedal else peers.box.press_pedal)()
+                    _progress(f"pedal {'pressed' if peers.box.pedal else 'released'}")
+                elif key == "s":
+                    peers.ur.inject_protective_stop()
+                    _progress("protective stop (POST /recover/arm, then /reset)")
+                elif key == "f":
+                    peers.drive.fault_axis(1)
+                    _progress("drive axis 1 faulted (POST /recover/effector, then /reset)")
+                elif key:
+                    _progress(_PEER_KEYS)
+            else:  # end of input (not a terminal): run until SIGINT or SIGTERM
+                while True:
+                    signal.pause()
+        except KeyboardInterrupt:
+            pass
+
+
 def cmd_markers_print(args: argparse.Namespace) -> int:
     fields_path = Path(args.fields) if args.fields else _default_fields()
     fields = load_fields(fields_path)
@@ -358,6 +421,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=int, default=None, help="override the scene's seed")
     r.add_argument("--json", action="store_true", help="print one JSON object")
     r.set_defaults(func=cmd_sim_render)
+
+    pe = sim.add_parser("peers", help="run a hardware cell of protocol peers (fake UR "
+                        "controller, Modbus drive, serial e-stop box, GigE cameras) and "
+                        "write its configuration")
+    pe.add_argument("--out", required=True, help="folder for cell.toml and the e-stop link")
+    pe.add_argument("--no-cameras", action="store_true", help="leave the cameras out")
+    pe.add_argument("--json", action="store_true", help="print one JSON object")
+    pe.set_defaults(func=cmd_sim_peers)
 
     mk = sub.add_parser("markers", help="marker fields").add_subparsers(dest="cmd",
                                                                         required=True)

@@ -137,3 +137,34 @@ def test_bench_needle_tracking_flag_runs_the_tracking_chart(tmp_path, capsys, mo
     calls.clear()
     assert cli.run(["bench", "needle", "--trials", "2", "--out", str(tmp_path)]) == 0
     assert [c[0] for c in calls] == ["mc"]
+
+
+def test_sim_peers_writes_a_loadable_hardware_cell(tmp_path):
+    """Issue 8 (demo on protocol peers): `oralnav sim peers --out DIR --json` starts the
+    peers, prints where its configuration is, writes a hardware-cell configuration that
+    loads, and stops cleanly on `q`."""
+    import json
+    import subprocess
+    import sys
+
+    from oralnav.config.daemon import load_config
+
+    cli = "from oralnav.daemon.cli import main; main()"
+    proc = subprocess.Popen([sys.executable, "-c", cli, "sim", "peers",
+                             "--out", str(tmp_path), "--no-cameras", "--json"],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        doc = json.loads(proc.stdout.readline())
+        cfg = load_config(doc["config"])
+        assert cfg.settings.cell.backend == "hardware"
+        assert cfg.settings.arm.ur.host == doc["ur_host"]
+        assert cfg.settings.effector.modbus.port == doc["modbus_port"]
+        assert cfg.settings.inputs.port == doc["estop"] and not cfg.settings.cameras
+        out, err = proc.communicate("q\n", timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert "peers stopped" in err

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import httpx
 
-from ..drivers.test_camera_aravis import ARAVIS_MISSING, running_fakes
+from ..drivers.test_camera_aravis import ARAVIS_MISSING
 
 
 def _free_port() -> int:
@@ -171,8 +171,9 @@ def test_daemon_reads_the_serial_estop_box(tmp_path: Path) -> None:
 
 def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:
     """Issue 8 (done when: the daemon runs with the fake devices in place of the simulated
-    ones): oralnavd on a [cell] backend = "hardware" configuration drives the UR arm through
-    ur_rtde against the fake UR controller, the wrist over Modbus TCP against the emulated
+    ones): oralnavd on the [cell] backend = "hardware" configuration that
+    oralnav.daemon.peers writes for its peers drives the UR arm through ur_rtde against the
+    fake UR controller, the wrist over Modbus TCP against the emulated
     drive unit, reads the serial e-stop box and the stereo pair from two simulated GigE
     cameras through Aravis; /status shows them connected, stereo pairs tracked and the cell
     READY; a protective stop faults the cell until the operator's POST /recover/arm (the
@@ -180,41 +181,14 @@ def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:
     cleanly."""
     import logging
 
-    from oralnav.sim.modbus_drive import ModbusDriveServer
-    from oralnav.sim.serial_box import SerialBox
-    from oralnav.sim.ur_controller import FakeURControllerProcess
+    from oralnav.daemon.peers import HardwarePeers
 
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-    link = tmp_path / "osio"
-    ur_host = f"127.84.{os.getpid() % 250}.1"
-    cams = ""
-    with contextlib.ExitStack() as stack:
-        ur = stack.enter_context(FakeURControllerProcess(ur_host, unlock_delay=0.2))
-        drive = stack.enter_context(ModbusDriveServer())
-        box = stack.enter_context(SerialBox(rate_hz=100, link=link))
-        if ARAVIS_MISSING is None:  # the stereo pair on two simulated GigE cameras
-            make = stack.enter_context(running_fakes())
-            cams = _stereo_cameras([make().address, make().address])
-            cams += '[stereo]\nby = "timestamp"\ntolerance = 0.01\nclock = "device"\n'
-        config = _hardware_cell(tmp_path, f"""
-[inputs]
-backend = "serial"
-port = "{link}"
-heartbeat_timeout = 0.5
-[arm]
-backend = "ur"
-[arm.ur]
-host = "{ur.host}"
-lookahead_time = 0.05
-gain = 500.0
-watchdog_timeout = 0.25
-[effector]
-backend = "modbus"
-silence_timeout = 0.3
-[effector.modbus]
-host = "127.0.0.1"
-port = {drive.port}
-""", cams)
+    with HardwarePeers(tmp_path, ur_host=f"127.84.{os.getpid() % 250}.1",
+                       cameras=ARAVIS_MISSING is None) as peers:
+        ur, box = peers.ur, peers.box
+        cams = peers.camera_addresses
+        config = peers.write_config()
         proc, base = _start_daemon(config, tmp_path)
         try:
             tokens = _wait_for_api(proc, base, tmp_path)
@@ -224,7 +198,7 @@ port = {drive.port}
                 st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
                 if st["safety"]["state"] == "READY":
                     break
-                assert time.monotonic() < deadline, st
+                assert time.monotonic() < deadline, st["safety"]["reasons"]
                 time.sleep(0.1)
             loop = st["control_loop"]
             assert loop["arm_connected"] and loop["wrist_connected"], loop
@@ -243,7 +217,7 @@ port = {drive.port}
                 time.sleep(0.05)
                 st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
             assert httpx.post(f"{base}/reset", headers=op, timeout=5).status_code == 409
-            time.sleep(0.3)  # the controller's unlock delay
+            time.sleep(0.7)  # the controller's unlock delay (0.5 s for the peers)
             assert httpx.post(f"{base}/recover/arm", headers=op, timeout=5).status_code == 200
             deadline = time.monotonic() + 20
             while httpx.post(f"{base}/reset", headers=op, timeout=5).status_code != 200:
