@@ -115,6 +115,7 @@ STATUS_DTYPE = np.dtype([
     # the wrist's drive (docs/drivers.md) and device recovery (docs/safety.md)
     ("wrist_connected", "?"),
     ("wrist_fault", f"S{240}"),
+    ("arm_fault", f"S{240}"),      # why the arm cannot obey (a start failure, a lost link)
     ("recover_count_seen", "i8"),
 ])
 
@@ -170,6 +171,8 @@ class ControlLoop:
         self._stop_seen = int(cmd.read()["stop_count"])
         self._clear_seen = int(cmd.read()["clear_count"])
         self._recover_seen = int(cmd.read()["recover_count"])
+        #: device -> why it did not start (written by the control process's start retries)
+        self.start_errors: dict[str, str] = {}
         self._deadline = DeadlineWatchdog(settings.period, settings.deadline_misses,
                                           settings.max_period_lateness)
         self._silence = DriverSilenceWatchdog(settings.driver_silence)
@@ -405,6 +408,15 @@ class ControlLoop:
         self._guide_active = True
         return step.setpoint
 
+    def _arm_fault(self, arm: Any) -> str:
+        """Why the arm cannot obey, in words ("" when it can or nobody knows): a start that
+        failed, else the driver's own ``fault`` (a lost link, a stop), while not ready."""
+        if arm.ready:
+            return ""
+        if not arm.connected and "arm" in self.start_errors:
+            return self.start_errors["arm"]
+        return getattr(self.arm, "fault", None) or ""
+
     def _publish(self, now: float, arm: Any, wrist: Any, err: float) -> None:
         self.status.write(
             t=now, periods=self._periods, T_B_tcp=arm.T_B_tcp, tcp_speed=arm.tcp_speed,
@@ -424,7 +436,8 @@ class ControlLoop:
             guide_to_target=self._guide_metrics[1], guide_lateral=self._guide_metrics[2],
             wrist_connected=wrist.connected if wrist is not None else False,
             wrist_fault=encode_reason(wrist.fault or "") if wrist is not None else b"",
-            recover_count_seen=self._recover_seen)
+            recover_count_seen=self._recover_seen,
+            arm_fault=encode_reason(self._arm_fault(arm)))
 
 
 def _await_recovery(device: str, pending: Any) -> None:

@@ -133,11 +133,12 @@ def _settle_heap() -> None:
 START_RETRY_S = (1.0, 10.0)
 
 
-def _start_or_retry(device: Any) -> None:
+def _start_or_retry(device: Any, kind: str, errors: dict[str, str]) -> None:
     """Start ``device``; one that cannot be reached now (a wrong address, a controller that
     is off, a recipe it refuses) leaves the loop running with the device disconnected (the
     loop latches its stop and the status names it), and a thread keeps trying to start it
-    with back-off, so the cell recovers when the device returns."""
+    with back-off, so the cell recovers when the device returns. ``errors[kind]`` holds why
+    it has not started (the status record reports it) until it does."""
     from oralnav.drivers.errors import DriverInitError
 
     try:
@@ -145,6 +146,7 @@ def _start_or_retry(device: Any) -> None:
         return
     except DriverInitError as exc:
         log.error("%r did not start: %s; retrying in the background", device, exc)
+        errors[kind] = f"did not start: {exc}"
 
     def retry() -> None:
         delay = START_RETRY_S[0]
@@ -154,9 +156,11 @@ def _start_or_retry(device: Any) -> None:
                 anyio.run(device.start)
             except DriverInitError as exc:
                 log.warning("%r still not started: %s", device, exc)
+                errors[kind] = f"did not start: {exc}"
                 delay = min(2 * delay, START_RETRY_S[1])
             else:
                 log.warning("%r started", device)
+                errors.pop(kind, None)
                 return
 
     threading.Thread(target=retry, name=f"start-{getattr(device, 'name', 'device')}",
@@ -186,12 +190,14 @@ def _child(spec: ProcessSpec, names: dict[str, str], ready: Any, plans: Any = No
         plans.close()
     arm = _build("arm", spec.arm, clock)
     eff = _build("effector", spec.effector, clock) if spec.effector else None
+    start_errors: dict[str, str] = {}
     try:
-        for d in (arm, eff):
+        for kind, d in (("arm", arm), ("effector", eff)):
             if d is not None:
-                _start_or_retry(d)
+                _start_or_retry(d, kind, start_errors)
         loop = ControlLoop(arm, eff, spec.settings, nav, cmd, status, spec.limiter,
                            clock=clock.now)
+        loop.start_errors = start_errors
         sims = [d for d in (arm, eff) if d is not None and hasattr(d, "advance")]
         last = [clock.now()]
 

@@ -176,7 +176,8 @@ class DaemonCore:
         if st is None or not self.control.alive:
             return "control loop not running"
         if not bool(st["arm_connected"]):
-            return "arm not connected"
+            why = decode_reason(st["arm_fault"])
+            return f"arm not connected ({why})" if why else "arm not connected"
         if bool(st["protective_stop"]) or bool(st["emergency_stop"]):
             return "arm stopped by its controller"
         wrist_fault = decode_reason(st["wrist_fault"])
@@ -209,6 +210,7 @@ class DaemonCore:
                         period_error_p99_ms=p99, period_error_max_ms=float(st["err_max"]) * 1e3,
                         periods_off_1ms=int(st["misses"]),
                         arm_connected=bool(st["arm_connected"]),
+                        arm_fault=decode_reason(st["arm_fault"]) or None,
                         wrist_connected=bool(st["wrist_connected"]),
                         wrist_fault=decode_reason(st["wrist_fault"]) or None,
                         motion_commands=int(st["motion_commands"]))

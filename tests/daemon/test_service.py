@@ -205,7 +205,8 @@ def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:
 def test_an_unreachable_arm_and_camera_fault_the_cell_and_recover(tmp_path: Path) -> None:
     """Issue 8 (bad input: a wrong IP, recovery when the device returns): oralnavd on a
     hardware cell whose UR controller and stereo cameras are not there yet comes up and
-    serves; the cell is in FAULT naming the arm and the cameras; once the controller and
+    serves; the cell is in FAULT naming the arm and the cameras (the status says which
+    controller address did not answer); once the controller and
     the cameras appear, the arm connects and pairs are tracked, and an operator reset
     brings the cell to READY."""
     from oralnav.sim.ur_controller import FakeURControllerProcess
@@ -244,6 +245,8 @@ connect_timeout = 0.5
 
             st = until(lambda s: s["safety"]["state"] == "FAULT", "FAULT")
             assert not st["control_loop"]["arm_connected"]
+            st = until(lambda s: s["control_loop"]["arm_fault"], "why the arm is not there")
+            assert ur_host in st["control_loop"]["arm_fault"], st["control_loop"]
             why = str(st["safety"]["reasons"])
             assert "arm" in why, why
             if cams:
