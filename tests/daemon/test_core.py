@@ -14,39 +14,23 @@ import httpx
 import numpy as np
 import pytest
 
-from oralnav.config.daemon import load_config
 from oralnav.daemon.api import build_app
 from oralnav.daemon.audit import AuditLog
 from oralnav.daemon.auth import TokenStore
-from oralnav.daemon.control_loop import LoopSettings
-from oralnav.daemon.control_process import ControlProcess, DriverSpec, ProcessSpec
-from oralnav.daemon.core import DaemonCore
 from oralnav.drivers.io.sim import SimInputs
-from oralnav.safety.limits import SpeedLimiter
-from oralnav.safety.watchdogs import WatchdogSet
 
-from ..helpers import LOADED_MACHINE
+from .core_rig import control_process, daemon_core, home_pose
 
-
-def _home() -> np.ndarray:
-    T = np.eye(4)
-    T[:3, 3] = [0.0, 0.0, 0.3]
-    return T
+_home = home_pose
 
 
 @pytest.fixture
 async def rig(tmp_path: Path):
-    cfg = load_config()
-    proc = ControlProcess(ProcessSpec(
-        arm=DriverSpec("sim", {"home": _home()}), effector=DriverSpec("sim"),
-        settings=LoopSettings(rate_hz=500.0, stale_pose=0.5, driver_silence=0.2,
-                              **LOADED_MACHINE),
-        limiter=SpeedLimiter(0.25, 0.5)))
+    proc = control_process()
     await proc.start()
     inputs = SimInputs()
     await inputs.start()
-    core = DaemonCore(proc, WatchdogSet.from_settings(cfg.settings.safety, 0.002),
-                      inputs=inputs)
+    core = daemon_core(proc, inputs)
     clear = TokenStore.generate(tmp_path / "tokens.toml")
     tokens = TokenStore.from_file(tmp_path / "tokens.toml")
     audit = AuditLog(tmp_path / "audit.jsonl").open()

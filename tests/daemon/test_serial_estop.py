@@ -6,36 +6,21 @@ reset is refused until the box reads released again, and then succeeds."""
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
-import anyio
-import numpy as np
 import pytest
 
-from oralnav.config.daemon import load_config
-from oralnav.daemon.control_loop import LoopSettings
-from oralnav.daemon.control_process import ControlProcess, DriverSpec, ProcessSpec
 from oralnav.daemon.core import DaemonCore
 from oralnav.drivers.io import open_inputs
 from oralnav.safety.errors import StateError
-from oralnav.safety.limits import SpeedLimiter
-from oralnav.safety.watchdogs import WatchdogSet
 from oralnav.sim.serial_box import SerialBox
 
-from ..helpers import LOADED_MACHINE
+from .core_rig import control_process, daemon_core, supervise_until
 
 
 @pytest.fixture
 async def cell(tmp_path: Path):
-    cfg = load_config()
-    home = np.eye(4)
-    home[:3, 3] = [0.0, 0.0, 0.3]
-    proc = ControlProcess(ProcessSpec(
-        arm=DriverSpec("sim", {"home": home}), effector=DriverSpec("sim"),
-        settings=LoopSettings(rate_hz=500.0, stale_pose=0.5, driver_silence=0.2,
-                              **LOADED_MACHINE),
-        limiter=SpeedLimiter(0.25, 0.5)))
+    proc = control_process()
     link = tmp_path / "osio"
     box = SerialBox(rate_hz=200, link=link)
     box.plug()
@@ -43,8 +28,7 @@ async def cell(tmp_path: Path):
                          reopen_backoff=(0.02, 0.1))
     await proc.start()
     await inputs.start()
-    core = DaemonCore(proc, WatchdogSet.from_settings(cfg.settings.safety, 0.002),
-                      inputs=inputs)
+    core = daemon_core(proc, inputs)
     try:
         yield core, box, inputs
     finally:
@@ -53,25 +37,15 @@ async def cell(tmp_path: Path):
         box.unplug()
 
 
-async def _supervise_until(core: DaemonCore, pred, timeout: float = 3.0) -> None:
-    t0 = time.monotonic()
-    while True:
-        core.supervise_once(time.monotonic())
-        if pred():
-            return
-        assert time.monotonic() - t0 < timeout, "condition not reached in time"
-        await anyio.sleep(0.005)
-
-
 def _state(core: DaemonCore) -> str:
     return core.supervisor.state.value
 
 
 async def _reset_when_released(core: DaemonCore, box: SerialBox) -> None:
-    await _supervise_until(core, lambda: core.status()["inputs"]["connected"]
+    await supervise_until(core, lambda: core.status()["inputs"]["connected"]
                            and not core.status()["inputs"]["estop_pressed"])
     core.reset("operator")
-    await _supervise_until(core, lambda: _state(core) == "READY")
+    await supervise_until(core, lambda: _state(core) == "READY")
 
 
 async def test_serial_estop_faults_latch_and_recover(cell) -> None:
@@ -79,13 +53,13 @@ async def test_serial_estop_faults_latch_and_recover(cell) -> None:
     latch ESTOP naming the cause (status shows it), never crash the daemon, and the stop
     can be reset once the box reads released again."""
     core, box, inputs = cell
-    await _supervise_until(core, lambda: _state(core) == "READY")
+    await supervise_until(core, lambda: _state(core) == "READY")
     assert core.status()["inputs"]["fault"] is None
 
     box.press_estop()
-    await _supervise_until(core, lambda: _state(core) == "ESTOP")
+    await supervise_until(core, lambda: _state(core) == "ESTOP")
     assert "emergency stop pressed" in json.dumps(core.status()["safety"])
-    await _supervise_until(core, lambda: bool(core.control.read_status()["latched"]))
+    await supervise_until(core, lambda: bool(core.control.read_status()["latched"]))
     with pytest.raises(StateError, match="e-stop"):
         core.reset("operator")
     box.release_estop()
@@ -98,7 +72,7 @@ async def test_serial_estop_faults_latch_and_recover(cell) -> None:
     ]
     for make, why in causes:
         make()
-        await _supervise_until(core, lambda: _state(core) == "ESTOP")
+        await supervise_until(core, lambda: _state(core) == "ESTOP")
         status = core.status()
         assert why in json.dumps(status["safety"]), (why, status["safety"])
         assert status["inputs"]["estop_pressed"] and not status["inputs"]["connected"]
@@ -109,4 +83,4 @@ async def test_serial_estop_faults_latch_and_recover(cell) -> None:
                 core.reset("operator")  # the box is gone: the input reads pressed
             box.plug()
         await _reset_when_released(core, box)
-    await _supervise_until(core, lambda: not bool(core.control.read_status()["latched"]))
+    await supervise_until(core, lambda: not bool(core.control.read_status()["latched"]))
