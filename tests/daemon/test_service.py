@@ -5,6 +5,7 @@ audit log intact)."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import re
 import signal
@@ -75,6 +76,38 @@ def _start_daemon(config: Path, folder: Path) -> tuple[subprocess.Popen, str]:
                              str(config), "--api-port", str(port)], env=env, cwd=folder,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     return proc, f"http://127.0.0.1:{port}"
+
+
+class _Api:
+    """The daemon's REST API seen from a test: the status polled until a condition holds,
+    and operator commands."""
+
+    def __init__(self, base: str, tokens: dict[str, str]) -> None:
+        self.base = base
+        self.observer = {"Authorization": f"Bearer {tokens['observer']}"}
+        self.operator = {"Authorization": f"Bearer {tokens['operator']}"}
+
+    def status(self) -> dict:
+        return httpx.get(f"{self.base}/status", headers=self.observer, timeout=2).json()
+
+    def until(self, pred, what: str, timeout: float = 20.0) -> dict:
+        """Poll /status until ``pred(status)``; the last status."""
+        deadline = time.monotonic() + timeout
+        while not pred(st := self.status()):
+            assert time.monotonic() < deadline, (what, st["safety"], st["rates_hz"])
+            time.sleep(0.05)
+        return st
+
+    def post(self, path: str) -> int:
+        """An operator's POST; its HTTP status."""
+        return httpx.post(f"{self.base}{path}", headers=self.operator, timeout=5).status_code
+
+    def reset_when_allowed(self, timeout: float = 20.0) -> None:
+        """POST /reset until the daemon accepts it (the fault conditions have cleared)."""
+        deadline = time.monotonic() + timeout
+        while self.post("/reset") != 200:
+            assert time.monotonic() < deadline, self.status()["safety"]
+            time.sleep(0.2)
 
 
 def test_sigterm_stops_the_robot_then_exits_cleanly(tmp_path: Path) -> None:
@@ -148,49 +181,24 @@ def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:
         config = peers.write_config()
         proc, base = _start_daemon(config, tmp_path)
         try:
-            tokens = _wait_for_api(proc, base, tmp_path)
-            head = {"Authorization": f"Bearer {tokens['observer']}"}
-            deadline = time.monotonic() + 20
-            while True:
-                st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
-                if st["safety"]["state"] == "READY":
-                    break
-                assert time.monotonic() < deadline, st["safety"]["reasons"]
-                time.sleep(0.1)
+            api = _Api(base, _wait_for_api(proc, base, tmp_path))
+            st = api.until(lambda s: s["safety"]["state"] == "READY", "READY")
             loop = st["control_loop"]
             assert loop["arm_connected"] and loop["wrist_connected"], loop
             assert loop["wrist_fault"] is None and st["inputs"]["connected"]
             if cams:  # stereo pairs arrive and are tracked (the fakes show no markers)
-                while st["rates_hz"].get("tracking stereo", 0.0) <= 0.0:
-                    assert time.monotonic() < deadline, st["rates_hz"]
-                    time.sleep(0.1)
-                    st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
+                api.until(lambda s: s["rates_hz"].get("tracking stereo", 0.0) > 0.0,
+                          "stereo pairs tracked")
             # a protective stop: FAULT; reset refused until the operator's dashboard recovery
-            op = {"Authorization": f"Bearer {tokens['operator']}"}
             ur.inject_protective_stop()
-            deadline = time.monotonic() + 10
-            while st["safety"]["state"] != "FAULT":
-                assert time.monotonic() < deadline, st["safety"]
-                time.sleep(0.05)
-                st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
-            assert httpx.post(f"{base}/reset", headers=op, timeout=5).status_code == 409
+            api.until(lambda s: s["safety"]["state"] == "FAULT", "FAULT", timeout=10)
+            assert api.post("/reset") == 409
             time.sleep(0.7)  # the controller's unlock delay (0.5 s for the peers)
-            assert httpx.post(f"{base}/recover/arm", headers=op, timeout=5).status_code == 200
-            deadline = time.monotonic() + 20
-            while httpx.post(f"{base}/reset", headers=op, timeout=5).status_code != 200:
-                assert time.monotonic() < deadline, httpx.get(
-                    f"{base}/status", headers=head, timeout=2).json()["safety"]
-                time.sleep(0.2)
-            while st["safety"]["state"] != "READY":
-                assert time.monotonic() < deadline, st["safety"]
-                time.sleep(0.05)
-                st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
+            assert api.post("/recover/arm") == 200
+            api.reset_when_allowed()
+            api.until(lambda s: s["safety"]["state"] == "READY", "READY after the reset")
             box.press_estop()
-            deadline = time.monotonic() + 10
-            while st["safety"]["state"] != "ESTOP":
-                assert time.monotonic() < deadline, st["safety"]
-                time.sleep(0.05)
-                st = httpx.get(f"{base}/status", headers=head, timeout=2).json()
+            st = api.until(lambda s: s["safety"]["state"] == "ESTOP", "ESTOP", timeout=10)
             assert "emergency stop pressed" in str(st["safety"]["reasons"])
             assert st["inputs"]["estop_pressed"] and st["inputs"]["fault"] is None
             proc.send_signal(signal.SIGTERM)
@@ -232,20 +240,8 @@ connect_timeout = 0.5
 """, cams)
         proc, base = _start_daemon(config, tmp_path)
         try:
-            tokens = _wait_for_api(proc, base, tmp_path)
-            obs = {"Authorization": f"Bearer {tokens['observer']}"}
-            op = {"Authorization": f"Bearer {tokens['operator']}"}
-
-            def status() -> dict:
-                return httpx.get(f"{base}/status", headers=obs, timeout=2).json()
-
-            def until(pred, what: str, timeout: float = 30.0) -> dict:
-                deadline = time.monotonic() + timeout
-                while not pred(st := status()):
-                    assert time.monotonic() < deadline, (what, st["safety"], st["rates_hz"])
-                    time.sleep(0.1)
-                return st
-
+            api = _Api(base, _wait_for_api(proc, base, tmp_path))
+            until = functools.partial(api.until, timeout=30.0)
             st = until(lambda s: s["safety"]["state"] == "FAULT", "FAULT")
             assert not st["control_loop"]["arm_connected"]
             st = until(lambda s: s["control_loop"]["arm_fault"], "why the arm is not there")
@@ -264,10 +260,7 @@ connect_timeout = 0.5
             if cams:
                 until(lambda s: s["rates_hz"].get("tracking stereo", 0.0) > 0.0,
                       "stereo pairs tracked")
-            deadline = time.monotonic() + 20
-            while httpx.post(f"{base}/reset", headers=op, timeout=5).status_code != 200:
-                assert time.monotonic() < deadline, status()["safety"]
-                time.sleep(0.2)
+            api.reset_when_allowed()
             until(lambda s: s["safety"]["state"] == "READY", "READY")
             proc.send_signal(signal.SIGTERM)
             out, err = proc.communicate(timeout=30)
