@@ -51,8 +51,8 @@ START_RETRY_S = (1.0, 10.0)
 
 
 class HardwareCapture:
-    """See the module docstring. Builds the cameras once (no I/O) at construction, so a
-    bad option is an error at the daemon's start."""
+    """See the module docstring. The cameras are built in the tasks, afresh for every
+    attempt to start them; their options were checked when the configuration loaded."""
 
     def __init__(self, core: DaemonCore, cfg: DaemonConfig) -> None:
         self.core = core
@@ -84,8 +84,6 @@ class HardwareCapture:
                                      "En"))
         for name in sorted(names):  # a stereo camera without its partner
             log.warning("camera %r: not part of a complete rig here; it is not read", name)
-        for _, make, _, _ in self.sources:
-            make()  # build once now: a bad option shows at start, not in the task
         self.frames: dict[str, int] = {}
 
     async def run(self, *, task_status: anyio.abc.TaskStatus[None] =

@@ -32,6 +32,8 @@ import threading
 import time
 from dataclasses import dataclass
 
+import anyio
+import anyio.to_thread
 import numpy as np
 
 from ..clock import Clock, WallClock
@@ -185,8 +187,6 @@ class MotorDriveEffector(EndEffector):
         self._reset_wanted.set()
 
     async def start(self) -> None:
-        import anyio.to_thread
-
         with self._lock:
             if self._started:
                 raise DriverInitError(f"effector {self.name!r}: start() called twice "
@@ -212,13 +212,11 @@ class MotorDriveEffector(EndEffector):
     async def close(self) -> None:
         self.stop()
         if self._thread is not None and self._link:
-            await _sleep(2 * self.period)  # let the hold reach the drive
+            await anyio.sleep(2 * self.period)  # let the hold reach the drive
         self._quit.set()
         thread, self._thread = self._thread, None
         if thread is not None:
-            import anyio.to_thread
-
-            await anyio.to_thread.run_sync(thread.join, 5.0)
+                await anyio.to_thread.run_sync(thread.join, 5.0)
 
     # -- the cycle thread ------------------------------------------------------------------
     def _run(self) -> None:
@@ -306,8 +304,3 @@ class MotorDriveEffector(EndEffector):
     def _reset_fault(self) -> None:
         """Run the drive's fault-reset sequence and re-enable it."""
 
-
-async def _sleep(seconds: float) -> None:
-    import anyio
-
-    await anyio.sleep(seconds)

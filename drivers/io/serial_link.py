@@ -32,6 +32,7 @@ import threading
 import time
 from dataclasses import dataclass
 
+import anyio.to_thread
 import serial
 
 from ..clock import Clock, WallClock
@@ -160,8 +161,6 @@ class SerialInputs(SafetyInputs):
 
     # -- lifecycle ---------------------------------------------------------------------
     async def start(self) -> None:
-        import anyio.to_thread
-
         with self._lock:
             if self._started:
                 raise DriverInitError(
@@ -192,9 +191,7 @@ class SerialInputs(SafetyInputs):
         self._wake.set()
         thread, self._thread = self._thread, None
         if thread is not None:
-            import anyio.to_thread
-
-            await anyio.to_thread.run_sync(thread.join, 2.0)
+                await anyio.to_thread.run_sync(thread.join, 2.0)
         self._close_port()
 
     # -- reading -------------------------------------------------------------------------
@@ -212,15 +209,18 @@ class SerialInputs(SafetyInputs):
                 fault = "not started"
             elif self._wake.is_set():
                 fault = "closed"
+            if not connected and fault is None:
+                fault = self._waiting(last)
         return InputState(
             timestamp=t if t is not None else now,
             estop_pressed=last.estop_pressed if last is not None else True,
             pedal_pressed=last.pedal_pressed if last is not None else False,
             connected=connected,
-            fault=None if connected else (fault or self._waiting(last)),
+            fault=None if connected else fault,
         )
 
     def _waiting(self, last: StatusLine | None) -> str:
+        """Why a reading without a fault is not connected yet (under ``_lock``)."""
         if last is None:
             return f"no status line from {self.port} yet"
         return (f"{self.port} recovering ({self._streak} of {self.recover_lines} good lines "
