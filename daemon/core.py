@@ -100,7 +100,11 @@ class DaemonCore:
 
     # -- the latched stop's handler (sync, never blocks) ---------------------------------
     def _stop_robot(self, record: Any) -> None:
+        # a latched stop ends every motion mode and goal: the loop is told to stop, and
+        # the goal record says HOLD, so that nothing resumes by itself after the reset
+        # (a MOVE goal left behind would trip the loop's stale-pose watchdog at once)
         self.control.request_stop(f"{record.source}: {record.reason}")
+        self.hold()
 
     # -- reports from the other tasks ----------------------------------------------------
     def publish_pose(self, name: str, T: np.ndarray, stamp: float, *, frame: str,
@@ -283,6 +287,9 @@ class DaemonCore:
         self.supervisor.reset(now, who, estop_released=released, faults_cleared=cleared)
         with self._glock:  # a latch ended any insertion; never let a reset resume one
             self._end_guide(now, "reset")
+        # HOLD again before the loop may command: a goal written in the instant the stop
+        # latched must not be what it follows after the reset
+        self.hold()
         self.control.clear_stop()
         log.info("reset by %s", who)
 
@@ -315,6 +322,9 @@ class DaemonCore:
         if self.supervisor.state in (SafetyState.RUNNING, SafetyState.PAUSED):
             raise StateError(f"cannot change targets while {self.supervisor.state.value}; "
                              "abort the procedure first")
+        if self.supervisor.interrupted is not None:
+            raise StateError("cannot change targets: a stop interrupted the procedure; "
+                             "resume it or abort it first (POST /procedure/abort)")
         with self._lock:
             self._targets = list(targets)
         log.info("%d suture target(s) set by %s", len(targets), who)
@@ -418,6 +428,9 @@ class DaemonCore:
             if state in (SafetyState.RUNNING, SafetyState.PAUSED):
                 raise StateError(f"cannot start guidance: a procedure is {state.value}; "
                                  "abort it first")
+            if sup.interrupted is not None:
+                raise StateError("cannot start guidance: a stop interrupted the procedure; "
+                                 "resume it or abort it first")
             if state is not SafetyState.READY:
                 raise StateError(f"cannot start guidance while in {state.value} (not ready: "
                                  f"{sup.not_ready_reason or 'no health report yet'})")

@@ -155,13 +155,18 @@ class NavigationTask:
             log.exception("navigation failed")
             core.supervisor.fault(core.clock(), "navigation", f"{type(exc).__name__}: {exc}")
         stage = self.navigator.stage if self.navigator is not None else None
-        core.watch_poses(STEERING_POSES.get(stage, set()))
+        # an interrupted procedure keeps its navigator, but steers nothing until resumed
+        steering = core.supervisor.state in (SafetyState.RUNNING, SafetyState.PAUSED)
+        core.watch_poses(STEERING_POSES.get(stage, set()) if steering else set())
 
     def _navigate(self, stereo: dict, endo: dict, T_B_tcp: np.ndarray, stamp: float) -> None:
         core, cfg = self.core, self.cell.config
         if core.supervisor.state is not SafetyState.RUNNING:
-            if core.supervisor.state is not SafetyState.PAUSED:
-                self.navigator = None  # a new start begins a new procedure
+            if (core.supervisor.state is not SafetyState.PAUSED
+                    and core.supervisor.interrupted is None):
+                # a new start begins a new procedure; one a stop interrupted is kept, to
+                # be resumed from its current target (or aborted) after the reset
+                self.navigator = None
             return
         if self.navigator is None:
             self.navigator = self._new_navigator()

@@ -13,6 +13,9 @@ Rules the code below keeps:
   is recorded but leaves the state ESTOP; an e-stop while in FAULT moves to ESTOP.
 - ``reset`` (FAULT/ESTOP -> IDLE) only when the e-stop input is released and the faults
   have cleared, as the caller (the daemon, which reads the inputs and watchdogs) reports.
+- A latch during a procedure (RUNNING or PAUSED) interrupts it: the procedure is kept,
+  never continued by itself. After the reset (and READY) the operator ``resume``s it from
+  where it stood or ``abort``s it; ``start`` is refused until one of the two is chosen.
 
 Time is passed in (``now``, seconds, monotonic or virtual); nothing here reads a clock.
 """
@@ -143,6 +146,8 @@ class SafetySupervisor:
         self._since = math.nan          # time of the last transition (none yet)
         self._not_ready: str | None = "starting"
         self._operator: str | None = None  # who started the current procedure
+        # a procedure a latch interrupted: who started it, when and why it was stopped
+        self._interrupted: dict[str, Any] | None = None
         # keyed by (kind, source): the first reason of each source is the cause; repeats
         # (a watchdog tripping every check while latched) only count
         self._causes: dict[tuple[str, str], Cause] = {}
@@ -173,6 +178,13 @@ class SafetySupervisor:
             return tuple(self._causes.values())
 
     @property
+    def interrupted(self) -> dict[str, Any] | None:
+        """The procedure a latched stop interrupted (``by``: who started it, ``time``,
+        ``reason``), until it is resumed or aborted; None otherwise."""
+        with self._lock:
+            return dict(self._interrupted) if self._interrupted is not None else None
+
+    @property
     def not_ready_reason(self) -> str | None:
         """Why the last health report said not ready; None when it said healthy."""
         return self._not_ready
@@ -192,6 +204,8 @@ class SafetySupervisor:
                 "motion_allowed": self.motion_allowed,
                 "since": _json_time(self._since),
                 "operator": self._operator,
+                "interrupted": (dict(self._interrupted) if self._interrupted is not None
+                                else None),
                 "not_ready_reason": self._not_ready,
                 "reasons": [c.as_dict() for c in self._causes.values()],
                 "dropped_reasons": self._dropped_causes,
@@ -212,7 +226,8 @@ class SafetySupervisor:
         s = self._state
         if s in LATCHED:
             return f" ({self._causes_text()}); reset first"
-        if s is SafetyState.IDLE and action == "start":
+        if s is SafetyState.IDLE and (action == "start" or (
+                action == "resume" and self._interrupted is not None)):
             return f" (not ready: {self._not_ready or 'waiting for a health report'})"
         if s is SafetyState.RUNNING:
             if action == "resume":
@@ -277,6 +292,11 @@ class SafetySupervisor:
             if self._state is not SafetyState.READY:
                 raise self._refuse("start")
             who = _operator(who, "start")
+            if self._interrupted is not None:
+                raise StateError(
+                    "cannot start: the procedure started by "
+                    f"{self._interrupted['by']} was interrupted by a stop "
+                    f"({self._interrupted['reason']}); resume or abort it first")
             if self._stop.latched:  # defensive: the stop was triggered behind our back
                 raise StateError("cannot start while the latched stop is latched "
                                  f"({self._stop.first}); reset first")
@@ -297,24 +317,44 @@ class SafetySupervisor:
             return True
 
     def resume(self, now: float, who: str, reason: str = "resumed") -> None:
-        """PAUSED -> RUNNING, on ``who``'s request."""
+        """PAUSED -> RUNNING, on ``who``'s request; or READY -> RUNNING when a latched
+        stop interrupted the procedure (:attr:`interrupted`) and the cell was reset: it
+        goes on from where it stood."""
         now = _check_now(now)
         with self._lock:
-            if self._state is not SafetyState.PAUSED:
+            paused = self._state is SafetyState.PAUSED
+            if not paused and not (self._state is SafetyState.READY
+                                   and self._interrupted is not None):
                 raise self._refuse("resume")
             who = _operator(who, "resume")
             if self._stop.latched:
                 raise StateError("cannot resume while the latched stop is latched "
                                  f"({self._stop.first}); reset first")
+            if not paused:
+                self._operator = who
+                reason = (f"{reason}: procedure interrupted by "
+                          f"{self._interrupted['reason']}" if self._interrupted else reason)
+            self._interrupted = None
             self._go(now, SafetyState.RUNNING, who, reason)
 
     def abort(self, now: float, who: str, reason: str = "procedure aborted") -> None:
-        """RUNNING or PAUSED -> READY: the procedure ends, the robot holds."""
+        """RUNNING or PAUSED -> READY: the procedure ends, the robot holds. A procedure a
+        latched stop interrupted (:attr:`interrupted`) is dropped in any state, which
+        stays as it is (a latch still needs its reset)."""
         now = _check_now(now)
         with self._lock:
             if self._state not in (SafetyState.RUNNING, SafetyState.PAUSED):
-                raise self._refuse("abort")
+                if self._interrupted is None:
+                    raise self._refuse("abort")
+                was = self._interrupted
+                self._interrupted = None
+                self._history.append(Transition(now, self._state, self._state,
+                                                _unnamed(who), f"{reason} (interrupted by "
+                                                f"{was['reason']})"))
+                log.info("interrupted procedure aborted by %s", _unnamed(who))
+                return
             self._operator = None
+            self._interrupted = None
             self._go(now, SafetyState.READY, _unnamed(who), reason)
 
     # -- latching (never raise) -----------------------------------------------------------
@@ -337,6 +377,10 @@ class SafetySupervisor:
             changed = False
             try:
                 # ESTOP outranks FAULT: a fault never leaves ESTOP
+                if self._state in (SafetyState.RUNNING, SafetyState.PAUSED):
+                    self._interrupted = {"by": self._operator, "time": _json_time(t),
+                                         "reason": f"{source}: {reason}"}
+                    self._operator = None
                 if self._state is not to and self._state is not SafetyState.ESTOP:
                     self._go(t, to, source, reason)
                     changed = True

@@ -19,7 +19,7 @@ from oralnav.daemon.audit import AuditLog
 from oralnav.daemon.auth import TokenStore
 from oralnav.drivers.io.sim import SimInputs
 
-from .core_rig import control_process, daemon_core, home_pose
+from .core_rig import control_process, daemon_core, home_pose, supervise_until
 
 _home = home_pose
 
@@ -100,6 +100,7 @@ async def test_procedure_needs_targets_then_moves_only_while_running(rig) -> Non
     assert r.status_code == 409  # not while running
     assert (await client.post("/procedure/pause", headers=op)).status_code == 200
     assert not core.set_goal(goal, time.monotonic())
+    await anyio.sleep(0.01)  # a period already under way may still have read the MOVE
     sent = int(core.control.read_status()["motion_commands"])
     await anyio.sleep(0.05)
     assert int(core.control.read_status()["motion_commands"]) == sent
@@ -161,3 +162,52 @@ async def test_needle_steps_over_rest_on_the_core(rig) -> None:
     doc = (await client.get("/needle", headers=_auth(clear, "observer"))).json()
     assert doc["cell"]["trial"] == 0 and doc["procedure"]["next"] == "NH"
     assert doc["procedure"]["results"]["NG"]["ok"] is True
+
+
+async def test_reset_after_a_stop_mid_procedure_brings_ready_and_keeps_it(rig) -> None:
+    """Issue 30, serious 2: after an e-stop during a running procedure (goals streaming to
+    the loop), a reset brings READY within 1 s and READY holds (no stale-goal FAULT), in
+    every cycle; the interrupted procedure resumes (the arm moves again) or aborts."""
+    core, client, clear, _, _ = rig
+    op = _auth(clear, "operator")
+    body = {"targets": [{"name": f"s{k}", "p_OM": [0.0, 0.01 * k, -0.01]} for k in range(4)]}
+    assert (await client.post("/targets", headers=op, json=body)).status_code == 200
+    assert (await client.post("/procedure/start", headers=op)).status_code == 200
+    goal = _home()
+    for cycle in range(6):
+        goal[0, 3] = 0.002 * (cycle % 2)
+        for _ in range(10):  # the procedure streams goals from fresh poses
+            assert core.set_goal(goal, time.monotonic())
+            await anyio.sleep(0.002)
+        r = await client.post("/estop", headers=op, json={"reason": f"cycle {cycle}"})
+        assert r.status_code == 200
+        await _until(lambda: bool(core.control.read_status()["latched"]))
+        assert core.status()["safety"]["interrupted"] is not None
+        t0 = time.monotonic()
+        r = await client.post("/reset", headers=op)
+        assert r.status_code == 200, r.text
+        while core.supervisor.state.value != "READY":
+            core.supervise_once(time.monotonic())
+            assert time.monotonic() - t0 < 1.0, core.status()["safety"]
+            await anyio.sleep(0.005)
+        t_ready = time.monotonic()
+        while time.monotonic() - t_ready < 0.3:  # past the loop's stale-pose limit
+            core.supervise_once(time.monotonic())
+            assert core.supervisor.state.value == "READY", core.status()["safety"]
+            await anyio.sleep(0.01)
+        r = await client.post("/procedure/start", headers=op)
+        assert r.status_code == 409 and "resume or abort" in r.json()["detail"]
+        r = await client.post("/procedure/resume", headers=op)
+        assert r.status_code == 200, r.text
+        assert core.supervisor.state.value == "RUNNING"
+    sent = int(core.control.read_status()["motion_commands"])
+    for _ in range(10):
+        assert core.set_goal(goal, time.monotonic())
+        await anyio.sleep(0.002)
+    assert int(core.control.read_status()["motion_commands"]) > sent  # it moves again
+    assert (await client.post("/estop", headers=op)).status_code == 200
+    assert (await client.post("/procedure/abort", headers=op)).status_code == 200
+    assert (await client.post("/reset", headers=op)).status_code == 200
+    await supervise_until(core, lambda: core.supervisor.state.value == "READY")
+    assert core.status()["safety"]["interrupted"] is None
+    assert (await client.post("/procedure/start", headers=op)).status_code == 200

@@ -324,3 +324,54 @@ def test_concurrent_faults_and_requests_stay_consistent():
     hist = sup.history
     for a, b in zip(hist, hist[1:], strict=False):
         assert a.to_state is b.from_state
+
+
+@pytest.mark.parametrize("latch", ["fault", "estop"])
+@pytest.mark.parametrize("during", [S.RUNNING, S.PAUSED])
+def test_a_latch_interrupts_the_procedure_which_resumes_or_aborts_after_reset(latch, during):
+    """Issue 30 (reset after a stop mid-procedure): a latch during a procedure keeps it as
+    interrupted, never running; after the reset and READY the operator resumes it (RUNNING)
+    or aborts it (READY, dropped); start is refused meanwhile, naming both choices."""
+    sup = in_state(during)
+    ACTIONS[latch](sup)
+    assert sup.interrupted is not None and sup.interrupted["by"] == WHO
+    assert "interrupted" in json.dumps(sup.snapshot())
+    assert not sup.motion_allowed
+    with pytest.raises(StateError, match="reset first"):
+        sup.resume(11.0, WHO)
+    sup.reset(12.0, WHO, estop_released=True, faults_cleared=True)
+    assert sup.state is S.IDLE
+    with pytest.raises(StateError, match="not ready"):
+        sup.resume(12.5, WHO)
+    sup.mark_ready(13.0)
+    with pytest.raises(StateError, match="resume or abort it first"):
+        sup.start(14.0, WHO)
+    assert sup.state is S.READY
+    sup.resume(15.0, "dr.jones")
+    assert sup.state is S.RUNNING and sup.motion_allowed and sup.interrupted is None
+    assert sup.snapshot()["operator"] == "dr.jones"
+    # a second stop, then abort instead: the procedure is dropped, READY stays
+    sup.estop(16.0, "rest", "again")
+    sup.reset(17.0, WHO, estop_released=True, faults_cleared=True)
+    sup.mark_ready(18.0)
+    sup.abort(19.0, WHO)
+    assert sup.state is S.READY and sup.interrupted is None
+    with pytest.raises(StateError, match="no procedure is running"):
+        sup.resume(20.0, WHO)
+    sup.start(21.0, WHO)
+    assert sup.state is S.RUNNING
+
+
+def test_an_interrupted_procedure_may_be_aborted_while_still_latched():
+    """Issue 30: /procedure/abort of an interrupted procedure is accepted while FAULT is
+    latched (the latch stays until its reset); a latch outside a procedure interrupts
+    nothing."""
+    sup = in_state(S.RUNNING)
+    sup.fault(5.0, "stale_pose:goal", "old")
+    sup.abort(6.0, WHO)
+    assert sup.state is S.FAULT and sup.interrupted is None
+    with pytest.raises(StateError, match="reset first"):
+        sup.abort(7.0, WHO)
+    idle = in_state(S.READY)
+    idle.estop(5.0, "rest", "drill")
+    assert idle.interrupted is None
