@@ -370,6 +370,13 @@ class ControlPort:
     def read_status(self) -> np.void | None:
         return None if self.status is None else self.status.read()
 
+    def heartbeat(self) -> int:
+        """The loop's heartbeat: a number that changes with every period it completes (the
+        status record's write count; the loop alone writes that record, once per period).
+        0 before the records exist. About a microsecond, never waits: the daemon's
+        heartbeat watch (``daemon/heartbeat.py``) polls it every millisecond."""
+        return 0 if self.status is None else self.status.sequence
+
 
 class ControlProcess(ControlPort):
     """Owns the shared records and the child process; see the module docstring."""

@@ -97,6 +97,9 @@ class DaemonCore:
         self._guide_clear = False           # the loop still holds a plan to remove
         self.supervisor.stop.add_handler(self._stop_guide, name="guidance")
         self.needle_session = NeedleSession(self._needle_refused)
+        #: the control loop's heartbeat watch (``daemon/heartbeat.py``), when the service
+        #: runs one; the supervision tick looks at it too
+        self.heartbeat: Any = None
 
     # -- the latched stop's handler (sync, never blocks) ---------------------------------
     def _stop_robot(self, record: Any) -> None:
@@ -154,6 +157,8 @@ class DaemonCore:
     def supervise_once(self, now: float) -> None:
         """One look at everything; see the module docstring."""
         sup = self.supervisor
+        if self.heartbeat is not None:
+            self.heartbeat.observe(now)
         st = self.control.read_status()
         if not self.control.alive:
             sup.fault(now, "control", "control process is not running")
@@ -169,16 +174,19 @@ class DaemonCore:
                           if ins.fault else "e-stop input disconnected (reads pressed)")
         for trip in self.watchdogs.check(now):
             sup.fault(now, trip.name, trip.reason)
-        problem = self._health(st)
+        problem = self._health(st, now)
         if problem is None:
             sup.mark_ready(now)
         else:
             sup.mark_not_ready(now, problem)
         self._guide_tick(now, st)
 
-    def _health(self, st: np.void | None) -> str | None:
+    def _health(self, st: np.void | None, now: float) -> str | None:
         if st is None or not self.control.alive:
             return "control loop not running"
+        silent = self._loop_silence(now)
+        if silent is not None:
+            return silent
         if not bool(st["arm_connected"]):
             why = decode_reason(st["arm_fault"])
             return f"arm not connected ({why})" if why else "arm not connected"
@@ -188,6 +196,23 @@ class DaemonCore:
         if wrist_fault:  # a drive's fault or lost link (POST /recover/effector resets one)
             return f"end-effector: {wrist_fault}"
         return None
+
+    def _loop_silence(self, now: float) -> str | None:
+        """Why the loop counts as silent (its heartbeat stalled), or None."""
+        deadline = self.watchdogs.deadline
+        if self.heartbeat is None or not deadline.stalled(now):
+            return None
+        return (f"control loop silent for {(deadline.quiet(now) or 0.0) * 1e3:.0f} ms "
+                "(process alive, no period completed)")
+
+    def health(self) -> tuple[bool, str | None]:
+        """Liveness of the daemon as a whole, for ``GET /health`` and the systemd
+        watchdog: False (with why) while the control process is dead or its loop silent.
+        A latched stop is no failure of the daemon: that is the safety state's business."""
+        if not self.control.alive:
+            return False, "control process is not running"
+        silent = self._loop_silence(self.clock())
+        return (False, silent) if silent is not None else (True, None)
 
     async def supervise(self, *, task_status: anyio.abc.TaskStatus[None] =
                         anyio.TASK_STATUS_IGNORED) -> None:
@@ -218,6 +243,10 @@ class DaemonCore:
                         wrist_connected=bool(st["wrist_connected"]),
                         wrist_fault=decode_reason(st["wrist_fault"]) or None,
                         motion_commands=int(st["motion_commands"]))
+        if self.heartbeat is not None:  # the daemon's own view of the loop's heartbeat
+            quiet = self.watchdogs.deadline.quiet(self.clock())
+            loop.update(quiet_ms=None if quiet is None else quiet * 1e3,
+                        last_silence=self.heartbeat.last_trip)
         with self._lock:
             rates = dict(self._rates)
         inputs = None
@@ -278,7 +307,7 @@ class DaemonCore:
             released = not self.inputs.state().estop_pressed
         st = self.control.read_status()
         trips = self.watchdogs.check(now)
-        problem = self._health(st)
+        problem = self._health(st, now)
         cleared = not trips and problem is None
         if not cleared:
             why = "; ".join([t.reason for t in trips] + ([problem] if problem else []))

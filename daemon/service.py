@@ -4,7 +4,8 @@ and stop the robot before anything else on SIGTERM / SIGINT.
 Task group (one anyio event loop; blocking work runs in the control process or in worker
 threads):
 
-- ``supervise``: the safety supervisor (``DaemonCore.supervise``, 200 Hz);
+- ``supervise``: the safety supervisor (``DaemonCore.supervise``, 50 Hz); beside the
+  group, the loop's heartbeat watch (``daemon/heartbeat.py``) polls in a thread of its own;
 - ``serve``: the operator REST API (uvicorn on this loop, 127.0.0.1 unless configured);
 - ``systemd``: READY / WATCHDOG / STOPPING notifications when systemd runs the daemon;
 - ``signals``: SIGTERM / SIGINT -> latched stop -> wait for the loop to confirm (at most
@@ -42,6 +43,7 @@ from .auth import TokenStore
 from .control_loop import LoopSettings
 from .control_process import ControlProcess, DriverSpec, ProcessSpec
 from .core import DaemonCore
+from .heartbeat import LoopHeartbeat
 
 log = logging.getLogger(__name__)
 
@@ -142,8 +144,11 @@ async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
         capture = HardwareCapture(core, cfg)  # builds the cameras; they open in the group
     keep_off_control_cpu(s.control.cpu)
     await control.start()
-    await inputs.start()
+    heartbeat = LoopHeartbeat(core, clock=core.clock)
+    core.heartbeat = heartbeat
     try:
+        heartbeat.start()  # a hung loop is seen within a few periods, whatever this loop does
+        await inputs.start()
         async with anyio.create_task_group() as tg:
             await tg.start(core.supervise)
             if nav is not None:
@@ -154,7 +159,8 @@ async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
                                   s.api.host, api_port or s.api.port)
             _log(f"serving the operator API on http://{s.api.host}:{port} "
                  f"(OpenAPI at /docs); audit log {audit.path}")
-            tg.start_soon(watchdog_task, notifier, lambda: control.alive)
+            # fed only while the control process is alive and its loop beats
+            tg.start_soon(watchdog_task, notifier, core.health)
             notifier.ready(status=f"API on {s.api.host}:{port}")
 
             async def on_signal() -> None:
@@ -176,6 +182,7 @@ async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
     finally:
         notifier.stopping(status="stopping: robot stopped, shutting the control loop down")
         with anyio.CancelScope(shield=True):
+            heartbeat.close()
             await control.close()
             await inputs.close()
         audit.close()

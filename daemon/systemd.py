@@ -215,15 +215,21 @@ def watchdog_interval(environ: Mapping[str, str] | None = None,
     return usec / 1e6
 
 
-def _ask(healthy: Callable[[], bool]) -> tuple[bool, str | None]:
-    """``healthy()``, where an exception counts as unhealthy (and is the reason)."""
+def _ask(healthy: Callable[[], bool | tuple[bool, str | None]]) -> tuple[bool, str | None]:
+    """``healthy()``, which may give ``(ok, why)``; an exception counts as unhealthy (and
+    is the reason)."""
     try:
-        return bool(healthy()), None
+        answer = healthy()
     except Exception as exc:
         return False, f"health check raised {type(exc).__name__}: {exc}"
+    if isinstance(answer, tuple):
+        ok, why = answer
+        return bool(ok), (None if ok else why)
+    return bool(answer), None
 
 
-async def watchdog_task(notifier: Notifier, healthy: Callable[[], bool], *,
+async def watchdog_task(notifier: Notifier,
+                        healthy: Callable[[], bool | tuple[bool, str | None]], *,
                         interval: float | None = None,
                         task_status: TaskStatus[float | None] = anyio.TASK_STATUS_IGNORED
                         ) -> None:

@@ -235,6 +235,17 @@ class DeadlineWatchdog:
         with self._lock:
             return self._consecutive
 
+    def quiet(self, now: float) -> float | None:
+        """Seconds since the last period completed at ``now`` (s); None until armed."""
+        now = _finite(now, "now (s)")
+        with self._lock:
+            return None if self._last_done is None else now - self._last_done
+
+    def stalled(self, now: float) -> bool:
+        """True when ``check(now)`` would report ``deadline:stalled``; consumes nothing."""
+        q = self.quiet(now)
+        return q is not None and q > self.period + self.max_lateness
+
     def check(self, now: float) -> list[Trip]:
         now = _finite(now, "now (s)")
         with self._lock:

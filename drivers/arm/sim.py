@@ -283,10 +283,16 @@ class SimArm(Arm):
     # -- simulation -----------------------------------------------------------------------------
 
     def advance(self, dt: float) -> None:
-        """Integrate the TCP over ``dt`` seconds (the caller advances the clock).
+        """Integrate the TCP over ``dt`` seconds, the interval that ends at the clock's
+        current time (the caller advances the clock).
 
-        Checks the watchdog at the current clock time first, then integrates in steps of at
-        most ``max_step``; the reported state gets the clock's time unless frozen.
+        The watchdog acts at the instant it expires, as a controller on its own machine
+        would, not when the caller comes back: when the interval spans
+        ``last command + watchdog_timeout``, the motion runs up to that instant and the
+        rest of ``dt`` brakes. So a host that stalls (its process stopped for seconds, then
+        resumed with one long ``advance``) sees the arm that the real controller's watchdog
+        would have left. Integrates in steps of at most ``max_step``; the reported state
+        gets the clock's time unless frozen.
         """
         dt = float(dt)
         if not math.isfinite(dt) or dt < 0.0:
@@ -295,19 +301,21 @@ class SimArm(Arm):
             now = float(self.clock.now())
             silence = now - self._last_feed
             tripped = self._mode in ("servo", "speed") and silence > self.watchdog_timeout
-            if tripped:
-                self._mode = "stop"
-                self.watchdog_trips += 1
+            # seconds of the interval before the watchdog expired (all of it if it did not)
+            before = min(dt, max(0.0, dt - (silence - self.watchdog_timeout))) if tripped \
+                else dt
         if tripped:  # logged outside the lock: a log handler may do slow I/O
             log.warning(
                 "arm %r: watchdog: no command for %.3f s > %.3f s; stopping",
                 self.name, silence, self.watchdog_timeout,
             )
-        steps = max(1, math.ceil(dt / self.max_step - 1e-9)) if dt > 0.0 else 0
-        for _ in range(steps):
-            # The lock is taken per step, so a stop() never waits for a long advance().
+        self._integrate(before)
+        if tripped:
             with self._lock:
-                self._step(dt / steps)
+                if self._mode in ("servo", "speed"):
+                    self._mode = "stop"
+                    self.watchdog_trips += 1
+            self._integrate(dt - before)
         with self._lock:
             if not self._frozen:
                 T = np.eye(4)
@@ -319,6 +327,14 @@ class SimArm(Arm):
             T_now = self._snap_T
         if self._force_source is not None:  # called outside the lock: it is user code
             self._read_force_source(now, T_now)
+
+    def _integrate(self, dt: float) -> None:
+        """Move over ``dt`` s in the current mode, in steps of at most ``max_step``."""
+        steps = max(1, math.ceil(dt / self.max_step - 1e-9)) if dt > 0.0 else 0
+        for _ in range(steps):
+            # The lock is taken per step, so a stop() never waits for a long advance().
+            with self._lock:
+                self._step(dt / steps)
 
     def _read_force_source(self, now: float, T_B_tcp: np.ndarray) -> None:
         try:

@@ -138,6 +138,32 @@ async def test_watchdog_stops_an_arm_that_is_not_kicked():
         assert tick(arm, clock).tcp_speed[0] > 0
 
 
+async def test_watchdog_acts_when_it_expires_even_if_the_host_stalled():
+    """issue 30 (hung control process): the simulated arm's watchdog stops it
+    watchdog_timeout after the last command, as a controller on its own machine would, even
+    when its host stalls for seconds and then advances it in one go: the arm ends where a
+    host that had kept running (advancing period by period) leaves it."""
+    results = []
+    for stalled in (False, True):
+        arm, clock = make_arm(watchdog_timeout=0.05)
+        async with arm:
+            arm.speed([0.1, 0, 0, 0, 0, 0], 1.0)
+            for _ in range(100):
+                arm.kick()
+                tick(arm, clock)
+            x0 = arm.state().T_B_tcp[0, 3]
+            if stalled:  # the process was stopped for 3 s, then resumed
+                s = tick(arm, clock, 3.0)
+            else:
+                for _ in range(1500):
+                    s = tick(arm, clock)
+            assert arm.watchdog_trips == 1 and not s.tcp_speed.any()
+            results.append(s.T_B_tcp[0, 3] - x0)
+    # 0.05 s at 0.1 m/s, then braking: millimetres, not the 0.3 m of 3 s at speed
+    assert 0.004 < results[0] < 0.02
+    assert results[1] == pytest.approx(results[0], abs=2e-4)
+
+
 async def test_watchdog_keeps_running_while_disconnected():
     """issue 4 drivers: when the link drops the arm goes on with its last command only until
     its watchdog stops it."""
