@@ -8,7 +8,8 @@ the endpoints, roles, status codes and the audit log.
 Rules every endpoint keeps:
 
 - authentication first: a missing or unknown bearer token is 401 (``WWW-Authenticate:
-  Bearer``), a role too low is 403, before the body is even looked at;
+  Bearer``), a role too low is 403, before the body is even read (``daemon/api_gate.py``:
+  every POST is authenticated from its headers, and its body is bounded, 413 beyond);
 - every state change is a POST and needs the ``operator`` role;
 - a refused request (401/403/400/422/409/503) calls nothing in ``ops`` except the one
   that refuses it, and changes nothing;
@@ -39,6 +40,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_validator
+from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from oralnav import __version__
@@ -46,6 +48,10 @@ from oralnav.config.daemon import ApiSection
 from oralnav.config.loader import Float
 from oralnav.safety.errors import StateError
 
+from .api_gate import COMMAND_METHODS, RequestGate
+from .api_gate import Refused as _Refused
+from .api_gate import authorize as _authorize
+from .api_gate import bearer_from_header as _bearer_from_header
 from .audit import AuditError, AuditLog
 from .auth import Principal, Role, TokenStore
 
@@ -168,6 +174,7 @@ class Operations(Protocol):
     of the operator, for the core's own log.
     """
 
+    def health(self) -> tuple[bool, str | None]: ...  # liveness: (ok, why not)
     def status(self) -> dict[str, Any]: ...      # JSON-able: state, reasons, rates, latencies
     def poses(self) -> dict[str, Any]: ...       # JSON-able newest poses with timestamps
     def telemetry(self) -> dict[str, Any]: ...   # JSON-able live snapshot for the websocket
@@ -196,15 +203,6 @@ class Operations(Protocol):
 
 
 # -- helpers -----------------------------------------------------------------------------
-class _Refused(Exception):
-    """A request refused before it reaches ``ops`` (401/403)."""
-
-    def __init__(self, status: int, detail: str, headers: dict[str, str] | None = None,
-                 principal: Principal | None = None) -> None:
-        super().__init__(detail)
-        self.status, self.detail, self.headers, self.principal = status, detail, headers, principal
-
-
 def jsonable(x: Any) -> Any:
     """``x`` as plain JSON values: numpy arrays and scalars become lists and numbers, models
     become dicts, non-finite floats become ``null`` (standard JSON has no NaN)."""
@@ -227,26 +225,6 @@ def jsonable(x: Any) -> Any:
 
 def _client(conn: Request | WebSocket) -> str | None:
     return f"{conn.client.host}:{conn.client.port}" if conn.client else None
-
-
-def _bearer_from_header(value: str | None) -> str | None:
-    scheme, _, token = (value or "").partition(" ")
-    return (token.strip() or None) if scheme.lower() == "bearer" else None
-
-
-def _authorize(tokens: TokenStore, token: str | None, required: Role) -> Principal:
-    """The principal of ``token`` if it has ``required``; raises :class:`_Refused`."""
-    if token is None:
-        raise _Refused(401, "missing bearer token (Authorization: Bearer <token>)",
-                       {"WWW-Authenticate": 'Bearer realm="oralnav"'})
-    principal = tokens.authenticate(token)
-    if principal is None:
-        raise _Refused(401, "unknown bearer token",
-                       {"WWW-Authenticate": 'Bearer realm="oralnav", error="invalid_token"'})
-    if not principal.allows(required):
-        raise _Refused(403, f"needs the {required} role; token {principal.name!r} has "
-                            f"{principal.role}", principal=principal)
-    return principal
 
 
 def _where(loc: tuple[Any, ...]) -> str:
@@ -330,6 +308,8 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
             return False  # audit.record has logged it with the record
         return True
 
+    app.add_middleware(RequestGate, tokens=tokens, record=record)
+
     async def audit_ready() -> str | None:
         """None when a command may run, else why the audit log refuses it."""
         try:
@@ -366,6 +346,24 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
         detail = "; ".join(f"{e['where']}: {e['reason']}" for e in errors)
         audited = await record(request, principal, status, detail, await _body(request))
         return reply(status, {"detail": detail, "errors": errors}, audited)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _on_http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        # FastAPI's own refusals: a body it cannot parse at all (bytes that are not UTF-8,
+        # JSON nested past the parser's depth), an unknown path or method. A command is
+        # audited like any other (the gate authenticated it already)
+        detail = str(exc.detail)
+        if exc.status_code == 400 and detail == "There was an error parsing the body":
+            detail = ("body is not valid JSON (bytes that are not UTF-8, or nested too "
+                      "deeply to parse)")
+        audited = True
+        if request.method in COMMAND_METHODS:
+            principal = tokens.authenticate(
+                _bearer_from_header(request.headers.get("authorization")) or "")
+            audited = await record(request, principal, exc.status_code, detail,
+                                   await _body(request))
+        return reply(exc.status_code, {"detail": detail}, audited,
+                     dict(exc.headers) if exc.headers else None)
 
     async def command(request: Request, who: Principal, name: str, run: Callable[[], Any],
                       *, audit_first: bool = True, in_thread: bool = False) -> JSONResponse:
@@ -404,9 +402,15 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
             return JSONResponse({"detail": str(exc)}, 409)
 
     # -- endpoints -------------------------------------------------------------------
-    @app.get("/health", summary="Liveness (no token needed)")
-    async def health() -> dict[str, Any]:
-        return {"ok": True, "service": "oralnav", "version": __version__}
+    @app.get("/health", summary="Liveness (no token needed): 503 while the control "
+                                "process is dead or its loop silent",
+             responses={503: {"description": "the daemon is not healthy; `reason` says why"}})
+    async def health() -> JSONResponse:
+        ok, why = ops.health()
+        doc: dict[str, Any] = {"ok": ok, "service": "oralnav", "version": __version__}
+        if not ok:
+            doc["reason"] = why
+        return JSONResponse(doc, 200 if ok else 503)
 
     @app.get("/status", summary="Safety state, reasons, loop rates and latencies")
     async def get_status(_: Observer) -> JSONResponse:

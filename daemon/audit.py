@@ -69,7 +69,7 @@ def summarize_body(body: bytes | str | None, limit: int = BODY_SUMMARY_CHARS) ->
     text = body.decode("utf-8", "replace") if isinstance(body, bytes) else body
     try:
         text = json.dumps(json.loads(text), separators=(",", ":"), ensure_ascii=False)
-    except ValueError:
+    except (ValueError, RecursionError):  # not JSON, or nested past the parser's depth
         text = " ".join(text.split())  # keep it on one line
     if len(text) > limit:
         text = f"{text[:limit]}...(+{len(text) - limit} chars)"
