@@ -8,9 +8,10 @@ real robot PC.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
@@ -20,13 +21,13 @@ from oralnav.sim.cell import CellConfig
 from oralnav.sim.scene import Scene
 
 from .calibration import Calibration, load_calibration
-from .cell import load_cell_config
+from .cell import CellFile, load_cell_config
 from .errors import ConfigError
-from .fields import load_fields
+from .fields import FieldsFile, load_fields
 from .hardware import ArmSection, CameraSection, EffectorSection, StereoSection
-from .loader import Float, Int, Strict, read_toml, resolve_file, validate
-from .rig import load_rig
-from .scene import load_scene
+from .loader import Float, Int, Strict, load_file, read_toml, resolve_file, validate
+from .rig import RigFile, load_rig
+from .scene import SceneFile, load_scene
 
 #: ISO 10218 reduced speed: no configured Cartesian speed may exceed it (m/s).
 ISO_REDUCED_SPEED = 0.25
@@ -303,6 +304,54 @@ def _check_cameras(path: Path, doc: DaemonFile, rig: Rig, endo: Rig | None) -> N
                               f"does not take (docs/cameras.md): {exc}") from None
 
 
+def _other_kinds() -> list[tuple[str, set[str], set[str], str]]:
+    """The project's other TOML files, for telling one given as a daemon configuration:
+    (what it is, its top-level keys, those it requires, where it belongs instead)."""
+    from .calibration import _File as CalibrationFile
+    from .planning import PlanningSceneFile
+
+    def keys(model: type[Strict]) -> tuple[set[str], set[str]]:
+        fields = model.model_fields
+        return set(fields), {k for k, f in fields.items() if f.is_required()}
+
+    return [
+        ('a cell file (docs/formats.md, "Cell file")', *keys(CellFile),
+         'name it in a daemon configuration\'s [cell] sim_cell (as config/sim.toml does) and '
+         'run oralnavd --config on that'),
+        ("a scene file", *keys(SceneFile),
+         "name it in a daemon configuration's [cell] scene, or render it with "
+         "oralnav sim render"),
+        ("a rig file", *keys(RigFile), "name it in a daemon configuration's [cell] rig"),
+        ("a marker-fields file", *keys(FieldsFile),
+         "name it in a daemon configuration's [cell] fields"),
+        ("a calibration file", *keys(CalibrationFile),
+         "name it in a daemon configuration's [calibration] section under its kind"),
+        ("a planning scene", *keys(PlanningSceneFile),
+         "use it with oralnav plan place --scene"),
+        ("a tokens file (docs/api.md)", {"tokens"}, {"tokens"},
+         "name it in a daemon configuration's [api] tokens_file"),
+    ]
+
+
+def _check_kind(path: Path, data: dict[str, Any]) -> None:
+    """Refuse, with one line that says so, another kind of project file given as a daemon
+    configuration (a cell, scene, rig, fields, calibration, planning or tokens file),
+    rather than listing its keys as unknown ones."""
+    top = set(data)
+    if isinstance(data.get("cell"), dict) or not top - set(DaemonFile.model_fields):
+        return  # a daemon configuration, if a broken one: validate says what is wrong
+    # the kind whose keys hold all of the file's and most of whose required keys it has;
+    # of equals the narrower (a fields file's one key is also a scene's)
+    best = max(((len(req & top), -len(known), what, hint)
+                for what, known, req, hint in _other_kinds()
+                if top <= known and req & top), default=None)
+    if best is not None:
+        _, _, what, hint = best
+        raise ConfigError(path, "", f"this looks like {what}, not a daemon configuration "
+                          f"(top-level keys {', '.join(sorted(top))}; no [cell] section): "
+                          f"{hint}")
+
+
 def default_config_path() -> Path:
     """The embedded simulation default, ``config/sim.toml``."""
     return Path(str(resources.files("oralnav.config").joinpath("sim.toml")))
@@ -315,15 +364,18 @@ def load_config(path: str | Path | None = None) -> DaemonConfig:
     key before the daemon touches hardware.
     """
     path = Path(path) if path is not None else default_config_path()
-    doc = validate(DaemonFile, read_toml(path), path)
+    data = read_toml(path)
+    _check_kind(path, data)
+    doc = validate(DaemonFile, data, path)
     cell = doc.cell
-    rig = load_rig(resolve_file(path, "cell.rig", cell.rig))
-    endo = (load_rig(resolve_file(path, "cell.endoscope_rig", cell.endoscope_rig))
+    rig = load_file(path, "cell.rig", cell.rig, load_rig)
+    endo = (load_file(path, "cell.endoscope_rig", cell.endoscope_rig, load_rig)
             if cell.endoscope_rig else None)
-    fields = load_fields(resolve_file(path, "cell.fields", cell.fields))
+    fields = load_file(path, "cell.fields", cell.fields, load_fields)
     scene_path = resolve_file(path, "cell.scene", cell.scene) if cell.scene else None
-    scene = load_scene(scene_path) if scene_path is not None else None
-    cell_cfg = (load_cell_config(resolve_file(path, "cell.sim_cell", cell.sim_cell))
+    scene = (load_file(path, "cell.scene", scene_path, load_scene)
+             if scene_path is not None else None)
+    cell_cfg = (load_file(path, "cell.sim_cell", cell.sim_cell, load_cell_config)
                 if cell.sim_cell else None)
     _check_cameras(path, doc, rig, endo)
     if doc.effector.canopen is not None and doc.effector.canopen.eds:
@@ -334,7 +386,7 @@ def load_config(path: str | Path | None = None) -> DaemonConfig:
         for kind in (*NAVIGATION_CALIBRATIONS, "pivot"):
             ref = getattr(c, kind)
             if ref:
-                cals[kind] = load_calibration(resolve_file(path, f"calibration.{kind}", ref),
-                                              kind=kind, cell=c.cell)
+                cals[kind] = load_file(path, f"calibration.{kind}", ref, partial(
+                    load_calibration, kind=kind, cell=c.cell))
     return DaemonConfig(path=path, settings=doc, rig=rig, endoscope_rig=endo, fields=fields,
                         scene_path=scene_path, scene=scene, cell=cell_cfg, calibrations=cals)

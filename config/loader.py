@@ -11,11 +11,12 @@ from __future__ import annotations
 import errno
 import math
 import os
+import re
 import tempfile
 import tomllib
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, TypeVar, get_origin
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 from pydantic import Strict as _StrictType
@@ -55,7 +56,28 @@ def read_toml(path: str | Path) -> dict[str, Any]:
     except UnicodeDecodeError:
         raise ConfigError(path, "", "not UTF-8 text") from None
     except tomllib.TOMLDecodeError as exc:
+        if _cut_short(raw, exc):
+            raise ConfigError(path, "", "not valid TOML: the file ends in the middle of a "
+                              f"statement, so it looks truncated (cut short): {exc}") from None
         raise ConfigError(path, "", f"not valid TOML: {exc}") from None
+
+
+def _cut_short(raw: bytes, exc: tomllib.TOMLDecodeError) -> bool:
+    """True when a parse error is where a file cut short puts it: at the end of the
+    document, or on a last line that has no line break (editors end files with one)."""
+    msg = str(exc)
+    if "(at end of document)" in msg:
+        return True
+    at = re.search(r"\(at line (\d+), column \d+\)", msg)
+    return (at is not None and not raw.endswith(b"\n")
+            and int(at.group(1)) == raw.count(b"\n") + 1)
+
+
+def _is_section(model: type[BaseModel], name: Any) -> bool:
+    """True when the top-level key ``name`` of ``model`` is a table ([name] or [name.x])."""
+    info = model.model_fields.get(name) if isinstance(name, str) else None
+    ann = info.annotation if info is not None else None
+    return get_origin(ann) is dict or (isinstance(ann, type) and issubclass(ann, BaseModel))
 
 
 def _loc(loc: Iterable[Any]) -> str:
@@ -90,6 +112,12 @@ def validate(model: type[M], data: Mapping[str, Any], path: str | Path, prefix: 
                 msg = str(e.get("ctx", {}).get("error", msg))
             if e["type"] == "extra_forbidden":
                 msg = "unknown key (check its spelling and section)"
+            elif (e["type"] == "missing" and not prefix and len(e["loc"]) == 1
+                  and _is_section(model, e["loc"][0])):
+                # top-level keys precede every table in TOML, so a missing table (not a
+                # missing plain key) is what a file cut short, or another kind of file, shows
+                msg = (f"{msg}: the file has no [{e['loc'][0]}] section; it may be cut short, "
+                       "or be another kind of file")
             elif e.get("input") is not None and e["type"] != "missing" and not isinstance(
                     e["input"], dict | list):
                 msg = f"{msg} (got {e['input']!r})"
@@ -123,6 +151,21 @@ def resolve_file(base_file: str | Path, key: str, ref: str | Path) -> Path:
     if not target.is_file():
         raise ConfigError(base_file, key, f"file not found: {target}")
     return target
+
+
+def load_file(base_file: str | Path, key: str, ref: str | Path,
+              load: Callable[[Path], T]) -> T:
+    """:func:`resolve_file`, then ``load`` the file. A problem with the file as a whole (not
+    TOML, not UTF-8, unreadable, the wrong kind of file) is reported against ``base_file``
+    and ``key`` too, so the message says which entry pointed at it; a problem at a key
+    inside the file is reported against that file and key as it is."""
+    target = resolve_file(base_file, key, ref)
+    try:
+        return load(target)
+    except ConfigError as exc:
+        if exc.key or Path(exc.file) != target:
+            raise
+        raise ConfigError(base_file, key, f"{target}: {exc.reason}") from None
 
 
 def atomic_write_bytes(path: str | Path, data: bytes, mode: int | None = None) -> None:

@@ -40,6 +40,10 @@ LENGTH_UNITS = {"m": 1.0, "mm": 1e-3}
 # wider range an explicitly given unit must land in.
 _AUTO_RANGE = (0.02, 0.3)
 _PLAUSIBLE_RANGE = (0.01, 0.5)
+# Binary STL layout: an 80-byte header and a uint32 triangle count, then 50 bytes a
+# triangle (normal and three vertices as 12 float32, a 2-byte attribute word).
+_STL_HEADER = 84
+_STL_TRIANGLE = 50
 # Triangles less tall than this (metres) have no area worth keeping.
 _DEGENERATE_HEIGHT = 1e-9
 
@@ -164,6 +168,37 @@ def _suffix(path: Path) -> str:
     return FORMATS[ext]
 
 
+def _check_stl(path: Path, size: int) -> None:
+    """Refuse an STL that trimesh would misread. A binary STL is an 80-byte header, a
+    little-endian uint32 triangle count N and 50 bytes a triangle, 84 + 50 N bytes in all;
+    when the size disagrees trimesh falls back to ASCII and fails on the bytes with an
+    unrelated message (a missing optional package), so a cut-short file is named here."""
+    with path.open("rb") as f:
+        head = f.read(1024)
+    # binary STLs hold NUL bytes (the count's high byte, the attribute words); ASCII ones
+    # begin with "solid" and hold none
+    if b"\x00" not in head:
+        if head.lstrip()[:5].lower() == b"solid":
+            try:
+                path.read_bytes().decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise MeshError(path, "", f"an ASCII STL (it begins with 'solid') that is not "
+                                f"UTF-8 text at byte {exc.start}") from None
+        return  # not binary: trimesh reads it as ASCII (or finds no faces)
+    if size < _STL_HEADER:
+        raise MeshError(path, "", f"truncated binary STL: {size} bytes, fewer than its "
+                        f"{_STL_HEADER}-byte header")
+    n = int.from_bytes(head[80:84], "little")
+    expected = _STL_HEADER + _STL_TRIANGLE * n
+    if size < expected:
+        raise MeshError(path, "", f"truncated binary STL: the header says {n} triangles "
+                        f"({expected} bytes), the file holds {size} bytes "
+                        f"({(size - _STL_HEADER) // _STL_TRIANGLE} whole triangles)")
+    if size > expected:
+        raise MeshError(path, "", f"binary STL of the wrong size: the header says {n} "
+                        f"triangles ({expected} bytes), the file holds {size} bytes")
+
+
 def _read(path: Path) -> trimesh.Trimesh:
     file_type = _suffix(path)
     if not path.exists():
@@ -171,8 +206,11 @@ def _read(path: Path) -> trimesh.Trimesh:
     if not path.is_file():
         raise MeshError(path, "", "not a file")
     try:
-        if path.stat().st_size == 0:
+        size = path.stat().st_size
+        if size == 0:
             raise MeshError(path, "", "the file is empty")
+        if file_type == "stl":
+            _check_stl(path, size)
         loaded = trimesh.load(str(path), file_type=file_type, force="mesh", process=False)
     except MeshError:
         raise

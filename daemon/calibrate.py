@@ -527,7 +527,22 @@ def chain_commands(samples: Path, out: Path, cell: str) -> list[list[str]]:
     ]
 
 
+def _check_capture(samples: Path) -> None:
+    """``samples`` must be a folder ``capture`` wrote: the message names the folder, as
+    the user gave it to --samples, and what is missing, not the steps' own options."""
+    if not samples.is_dir():
+        what = "not a folder" if samples.exists() else "no such folder"
+        raise SampleFileError(f"{samples}: --samples: {what} (give the --out folder of "
+                              "oralnav calibrate capture)")
+    missing = [f"{k}/{f}" for k, files in CAPTURE_FILES.items() for f in files
+               if not (samples / k / f).is_file()]
+    if missing:
+        raise SampleFileError(f"{samples}: --samples: not a complete capture folder; missing "
+                              f"{', '.join(missing)} (oralnav calibrate capture writes them)")
+
+
 def cmd_chain(args: argparse.Namespace) -> int:
+    _check_capture(Path(args.samples))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     parser = argparse.ArgumentParser(prog="oralnav calibrate")

@@ -393,7 +393,9 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
     from oralnav.bench import needle
 
     if args.trials is not None and args.trials < 1:
-        raise SystemExit(f"oralnav bench needle: --trials must be >= 1, got {args.trials}")
+        raise UsageError(f"--trials must be at least 1, got {args.trials}")
+    if args.workers is not None and args.workers < 1:
+        raise UsageError(f"--workers must be at least 1, got {args.workers}")
     doc = needle.main(Path(args.out), quick=args.quick, trials=args.trials, seed=args.seed,
                       workers=args.workers)
     s = needle.summary(doc)
@@ -408,8 +410,25 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose subcommands refuse arguments they do not know themselves.
+
+    argparse's subcommands leave unknown arguments to the top-level parser, which then
+    prints the top-level usage; the subcommand's own usage is what helps. The subcommand
+    parsers are of the parent's class, so every level refuses its own unknown arguments.
+    """
+
+    def parse_known_args(self, args: Sequence[str] | None = None,
+                         namespace: argparse.Namespace | None = None
+                         ) -> tuple[argparse.Namespace, list[str]]:
+        ns, extras = super().parse_known_args(args, namespace)
+        if extras:
+            self.error(f"unrecognized arguments: {' '.join(extras)}")
+        return ns, extras
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="oralnav", description="oralnav tools")
+    p = _Parser(prog="oralnav", description="oralnav tools")
     p.add_argument("--version", action="version", version=f"oralnav {__version__}")
     sub = p.add_subparsers(dest="group", required=True)
 

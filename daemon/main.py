@@ -3,9 +3,11 @@
 It loads and validates the configuration and every file it names, then serves the cell:
 the control loop in its own process, the safety supervisor and the operator REST API in
 one anyio task group (``daemon/service.py``), until SIGTERM, which stops the robot first.
-``--check`` only validates. ``--demo`` is the main job: on the simulated cell it plays
-the operator over the REST API (register the suture targets, start) while the daemon runs
-the paper's two-stage navigation, then prints the reached TRE and the measured rates.
+``--check`` only validates, everything a start reads (the configuration and its files,
+the tokens file, the audit log's folder; :func:`check_start_files`). ``--demo`` is the
+main job: on the simulated cell it plays the operator over the REST API (register the
+suture targets, start) while the daemon runs the paper's two-stage navigation, then
+prints the reached TRE and the measured rates.
 
     oralnavd [--config FILE] [--check] [--demo] [--api-port N] [--json]
 """
@@ -15,19 +17,51 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 import time
 from collections.abc import Sequence
 from typing import Any
 
 from oralnav import __version__
-from oralnav.config.daemon import load_config
+from oralnav.config.daemon import DaemonConfig, load_config
 from oralnav.config.errors import ConfigError
+from oralnav.config.loader import load_file
 from oralnav.control.errors import ControlError
 
 
 def _log(msg: str) -> None:
     print(f"oralnavd: {msg}", file=sys.stderr, flush=True)
+
+
+def check_start_files(cfg: DaemonConfig) -> None:
+    """Check what a start reads or writes beyond the configuration ``load_config`` has
+    loaded: the tokens file (loaded as the API will load it), the audit log (its folder
+    must exist and the file be writable: the log is opened, never its folder created) and,
+    without a tokens file, ``$RUNTIME_DIRECTORY`` for the demo tokens. Raises
+    :class:`ConfigError` naming the configuration file and key, or the tokens file and key.
+    """
+    from .audit import resolve_audit_path
+    from .auth import TokenStore
+
+    api = cfg.settings.api
+    if api.tokens_file:
+        load_file(cfg.path, "api.tokens_file", api.tokens_file, TokenStore.from_file)
+    log = resolve_audit_path(api.audit_log)
+    if log.exists():
+        if not log.is_file() or not os.access(log, os.W_OK):
+            raise ConfigError(cfg.path, "api.audit_log",
+                              f"{log}: not a file this user may append to")
+    elif not log.parent.is_dir():
+        raise ConfigError(cfg.path, "api.audit_log", f"{log}: folder {log.parent} does not "
+                          "exist (the daemon creates the log, not its folder)")
+    elif not os.access(log.parent, os.W_OK | os.X_OK):
+        raise ConfigError(cfg.path, "api.audit_log", f"{log}: this user may not create "
+                          f"files in {log.parent}")
+    runtime = os.environ.get("RUNTIME_DIRECTORY", "").split(":")[0]
+    if not api.tokens_file and runtime and not os.access(runtime, os.W_OK | os.X_OK):
+        raise ConfigError(cfg.path, "api.tokens_file", "not set, so demo tokens go to "
+                          f"$RUNTIME_DIRECTORY {runtime}, which this user may not write")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -47,6 +81,7 @@ def run(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         cfg = load_config(args.config)
+        check_start_files(cfg)
         if args.api_port is not None and not 1 <= args.api_port <= 65535:
             raise ConfigError("--api-port", "", f"must be 1..65535, got {args.api_port}")
     except (ConfigError, ControlError) as exc:
@@ -95,9 +130,15 @@ def run(argv: Sequence[str] | None = None) -> int:
         return 0
     import anyio
 
+    from .audit import AuditError
     from .service import run_service
     logging.basicConfig(level=logging.INFO, format="oralnavd: %(name)s: %(message)s")
-    return anyio.run(run_service, cfg, args.api_port)
+    try:
+        return anyio.run(run_service, cfg, args.api_port)
+    except (ConfigError, AuditError) as exc:
+        # a file changed since the check above (tokens, audit log): one line, bad input
+        print(f"oralnavd: error: {exc}", file=sys.stderr)
+        return 2
 
 
 def main() -> None:

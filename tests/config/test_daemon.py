@@ -353,3 +353,42 @@ def test_calibration_file_of_the_wrong_kind_is_refused(tmp_path):
     text = GOOD + f'\n[calibration]\ncell = "test-cell"\nhand_eye = "{files["effector_zero"]}"\n'
     with pytest.raises(ConfigError, match="'effector_zero' calibration; a 'hand_eye' one"):
         load_config(_write(tmp_path, "oralnav.toml", text))
+
+
+def test_calibration_entry_pointing_at_a_non_toml_file_names_the_entry(tmp_path):
+    """issue 30: a [calibration] entry that points at a file that is not TOML is refused
+    naming the configuration file, the [calibration] key that referred to it, and the
+    file itself."""
+    notes = _write(tmp_path, "hand_eye.txt", "1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    path = _write(tmp_path, "oralnav.toml", GOOD + f'\n[calibration]\ncell = "test-cell"\n'
+                                                   f'hand_eye = "{notes}"\n')
+    msg = _expect(path, "[calibration] hand_eye:", str(notes), "not valid TOML")
+    assert msg.startswith(f"{path}: [calibration] hand_eye: {notes}: "), msg
+
+
+# -- issue 30: truncated files and files of another kind -----------------------------------
+def test_config_cut_short_is_called_truncated(tmp_path):
+    """issue 30: a daemon configuration cut in the middle says the file looks truncated:
+    cut inside a statement (the TOML parse fails at its end), or cut before its [cell]
+    section (it parses, and [cell] is missing)."""
+    cut = GOOD[:GOOD.index('fields = "') + 12]  # inside the fields string
+    _expect(_write(tmp_path, "cut.toml", cut), "not valid TOML", "truncated")
+    head = GOOD[:GOOD.index("[cell]")]
+    _expect(_write(tmp_path, "head.toml", head), ": cell:",
+            "no [cell] section", "cut short", "another kind of file")
+
+
+@pytest.mark.parametrize("name, what, where", [
+    ("examples/sim_cell.toml", "a cell file", "[cell] sim_cell"),
+    ("examples/stereo_cell.toml", "a scene file", "[cell] scene"),
+    ("rigs/stereo.toml", "a rig file", "[cell] rig"),
+    ("fields/cell.toml", "a marker-fields file", "[cell] fields"),
+    ("calibration/hand_eye.toml", "a calibration file", "[calibration]"),
+    ("examples/oral_cavity_case.toml", "a planning scene", "oralnav plan place"),
+])
+def test_another_kind_of_file_given_as_configuration_says_what_it_is(name, what, where):
+    """issue 30: `oralnavd --config config/examples/sim_cell.toml` (or a scene, rig, fields,
+    calibration or planning file) says what kind of file it is and where it belongs,
+    in one line, instead of listing its keys as unknown ones."""
+    msg = _expect(CONFIG / name, "not a daemon configuration", what, where)
+    assert "unknown key" not in msg

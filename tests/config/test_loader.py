@@ -25,6 +25,7 @@ from oralnav.config.loader import (
     atomic_write_text,
     build,
     dump_toml,
+    load_file,
     read_toml,
     resolve,
     resolve_file,
@@ -81,6 +82,59 @@ def test_read_toml_syntax_error_names_file_and_line(tmp_path):
     msg = str(ei.value)
     assert msg.startswith(f"{path}: not valid TOML")
     assert "line 3" in msg
+
+
+@pytest.mark.parametrize("text", ['name = "x"\n[items.a]\nsize = [1, 2',  # array cut
+                                  'name = "x"\n[items', 'name = "x"\nsize = 1.'],
+                         ids=["array", "table", "number"])
+def test_read_toml_names_a_file_cut_short(tmp_path, text):
+    """issue 30: a TOML file cut in the middle (the parse fails at its end, or on a last
+    line without a line break) is called truncated, not only "not valid TOML"."""
+    path = tmp_path / "cut.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as ei:
+        read_toml(path)
+    msg = str(ei.value)
+    assert msg.startswith(f"{path}: not valid TOML") and "truncated" in msg, msg
+    path.write_text('name = "x"\nsize = [1,, 2]\nmore = 1\n')  # an error mid-file is not
+    with pytest.raises(ConfigError) as ei:
+        read_toml(path)
+    assert "truncated" not in str(ei.value)
+
+
+def test_validate_missing_section_hints_a_cut_or_wrong_file():
+    """issue 30: a required section that is missing (what a file cut short, or another kind
+    of file, shows) says so; a missing plain key does not get the hint."""
+
+    class _Sections(Strict):
+        name: str
+        inner: _Inner
+
+    with pytest.raises(ConfigError) as ei:
+        validate(_Sections, {"name": "x"}, "f.toml")
+    assert str(ei.value) == ("f.toml: inner: Field required: the file has no [inner] "
+                             "section; it may be cut short, or be another kind of file")
+    with pytest.raises(ConfigError) as ei:
+        validate(_Sections, {"inner": {"size": [1, 2]}}, "f.toml")
+    assert str(ei.value) == "f.toml: name: Field required"
+
+
+def test_load_file_names_the_key_that_referred_to_a_broken_file(tmp_path):
+    """issue 30: a file named by another file's key that is broken as a whole (not TOML) is
+    reported against the referring file and key too; an error at a key inside it is
+    reported against that file and key as before."""
+    base = tmp_path / "main.toml"
+    (tmp_path / "notes.txt").write_text("just some notes\n")
+    with pytest.raises(ConfigError) as ei:
+        load_file(base, "refs.other", "notes.txt", read_toml)
+    assert ei.value.file == str(base) and ei.value.key == "refs.other"
+    assert str(ei.value).startswith(f"{base}: [refs] other: {tmp_path / 'notes.txt'}: "
+                                    "not valid TOML")
+    (tmp_path / "doc.toml").write_text('name = "x"\n[items.a]\nsize = [1, 0]\n')
+    with pytest.raises(ConfigError) as ei:
+        load_file(base, "refs.other", "doc.toml",
+                  lambda p: validate(_Doc, read_toml(p), p))
+    assert ei.value.file == str(tmp_path / "doc.toml") and ei.value.key == "items.a.size[1]"
 
 
 def test_read_toml_not_utf8_names_the_file(tmp_path):

@@ -147,6 +147,28 @@ def test_refuses_an_unparseable_file(tmp_path):
     _refused(stl, "auto", "faces", "no faces")
 
 
+def test_refuses_a_truncated_binary_stl_with_its_sizes(tmp_path, monkeypatch):
+    """issue 30: a binary STL cut short (or of the wrong size) is refused saying so, with
+    the triangle count its header gives and the bytes the file holds, without reaching
+    trimesh's ASCII fallback (which needs the optional charset_normalizer)."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "charset_normalizer", None)  # as if not installed
+    whole = save_mesh(_box(), tmp_path / "whole.stl").read_bytes()  # 12 triangles
+    assert len(whole) == 84 + 50 * 12
+    cut = tmp_path / "cut.stl"
+    cut.write_bytes(whole[:-70])
+    _refused(cut, "auto", "", "truncated binary STL", "12 triangles", "684 bytes",
+             "614 bytes")
+    cut.write_bytes(whole[:40])
+    _refused(cut, "auto", "", "truncated binary STL", "40 bytes", "84-byte header")
+    cut.write_bytes(whole + b"\0\0")
+    _refused(cut, "auto", "", "wrong size", "686 bytes")
+    ascii_stl = tmp_path / "ascii.stl"
+    ascii_stl.write_bytes(_box().export(file_type="stl_ascii").encode() + b"\xff")
+    _refused(ascii_stl, "auto", "", "ASCII STL", "not UTF-8")
+
+
 def test_refuses_a_file_without_faces(tmp_path):
     """Vertices alone (a point cloud) are not a mesh."""
     path = tmp_path / "points.obj"

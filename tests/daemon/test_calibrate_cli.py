@@ -159,6 +159,27 @@ def test_out_without_cell_is_refused(tmp_path, capsys):
     assert code == 2 and "--cell" in _json(capsys)["error"]
 
 
+def test_chain_names_the_samples_folder_and_what_is_missing(tmp_path, capsys):
+    """issue 30: `oralnav calibrate chain --samples out/nope` names the folder the user gave
+    to --samples and what is missing, never a step's own option (--robot) the user did not
+    type, and writes nothing."""
+    out = tmp_path / "cal"
+    nope = tmp_path / "nope"
+    assert cli.run(["calibrate", "chain", "--samples", str(nope), "--out", str(out),
+                    "--cell", "sim-cell", "--json"]) == 2
+    err = _json(capsys)["error"]
+    assert err.startswith(f"{nope}: --samples: no such folder") and "--robot" not in err
+    part = tmp_path / "part"
+    (part / "hand_eye").mkdir(parents=True)
+    (part / "hand_eye" / "T_B_tcp.txt").write_text(" ".join(["1"] * 16) + "\n")
+    assert cli.run(["calibrate", "chain", "--samples", str(part), "--out", str(out),
+                    "--cell", "sim-cell", "--json"]) == 2
+    err = _json(capsys)["error"]
+    assert err.startswith(f"{part}: --samples: not a complete capture folder")
+    assert "hand_eye/T_C_RM.txt" in err and "T_B_tcp" not in err and "--robot" not in err
+    assert not out.exists()
+
+
 # -- intrinsics and stereo from images (item 1) ---------------------------------------------
 @pytest.fixture(scope="module")
 def stereo_views(tmp_path_factory) -> Path:

@@ -139,6 +139,34 @@ def test_bench_needle_tracking_flag_runs_the_tracking_chart(tmp_path, capsys, mo
     assert [c[0] for c in calls] == ["mc"]
 
 
+def test_bench_needle_bad_counts_exit_2_naming_the_option(tmp_path, capsys):
+    """issue 30: `oralnav bench needle --trials 0` (or --workers 0) is bad input: exit
+    status 2 and a message naming the option, before any trial runs."""
+    for option in ("--trials", "--workers"):
+        assert cli.run(["bench", "needle", option, "0", "--out", str(tmp_path), "--json"]) == 2
+        doc = _one_json(capsys)
+        assert doc["exit"] == 2 and f"{option} must be at least 1, got 0" in doc["error"]
+    assert not list(tmp_path.iterdir())
+
+
+def test_unknown_flag_on_a_subcommand_prints_its_usage(capsys):
+    """issue 30: an unknown flag on a subcommand prints that subcommand's usage (not the
+    top-level one) and exits 2."""
+    import pytest
+
+    for argv, usage in ((["config", "check", "--bogus"], "usage: oralnav config check"),
+                        (["bench", "needle", "--out", "x", "--bogus"],
+                         "usage: oralnav bench needle"),
+                        (["calibrate", "chain", "--samples", "a", "--out", "b", "--cell", "c",
+                          "--bogus"], "usage: oralnav calibrate chain")):
+        with pytest.raises(SystemExit) as ei:
+            cli.run(argv)
+        assert ei.value.code == 2
+        err = capsys.readouterr().err
+        assert err.startswith(usage), err
+        assert "unrecognized arguments: --bogus" in err
+
+
 def test_sim_peers_writes_a_loadable_hardware_cell(tmp_path):
     """Issue 8 (demo on protocol peers): `oralnav sim peers --out DIR --json` starts the
     peers, prints where its configuration is, writes a hardware-cell configuration that
