@@ -159,9 +159,31 @@ class ApiSection(Strict):
     # validate_default: a default host must pass the loopback check too
     host: str = Field("127.0.0.1", min_length=1, validate_default=True)
     port: Annotated[Int, Field(ge=1, le=65535)] = 8750
-    tokens_file: str | None = Field(None, min_length=1)
+    tokens_file: str | None = Field(None, min_length=1, validate_default=True)
     audit_log: str = Field("oralnav-audit.jsonl", min_length=1)
     telemetry_hz: Annotated[Float, Field(ge=1, le=100)] = 20.0
+    # HTTPS: PEM certificate (chain) and private key, relative to this file; both or none
+    tls_cert: str | None = Field(None, min_length=1)
+    tls_key: str | None = Field(None, min_length=1, validate_default=True)
+
+    @field_validator("tokens_file")
+    @classmethod
+    def _remote_needs_real_tokens(cls, v: str | None, info: ValidationInfo) -> str | None:
+        # demo tokens are written to a local file for whoever runs the daemon; a port
+        # that faces the network must be guarded by tokens someone issued on purpose
+        if v is None and info.data.get("allow_remote") is True:
+            raise ValueError("allow_remote = true needs a tokens_file: the demo tokens "
+                             "generated at start are refused on a network-facing port")
+        return v
+
+    @field_validator("tls_key")
+    @classmethod
+    def _tls_pair(cls, v: str | None, info: ValidationInfo) -> str | None:
+        if (v is None) != (info.data.get("tls_cert") is None):
+            raise ValueError("HTTPS needs both tls_cert and tls_key"
+                             + (" (tls_key is missing)" if v is None else
+                                " (tls_cert is missing)"))
+        return v
 
     @staticmethod
     def is_loopback(host: str) -> bool:
@@ -378,6 +400,10 @@ def load_config(path: str | Path | None = None) -> DaemonConfig:
     cell_cfg = (load_file(path, "cell.sim_cell", cell.sim_cell, load_cell_config)
                 if cell.sim_cell else None)
     _check_cameras(path, doc, rig, endo)
+    for key in ("tls_cert", "tls_key"):
+        ref = getattr(doc.api, key)
+        if ref is not None:
+            resolve_file(path, f"api.{key}", ref)
     if doc.effector.canopen is not None and doc.effector.canopen.eds:
         resolve_file(path, "effector.canopen.eds", doc.effector.canopen.eds)  # must exist
     cals: dict[str, Calibration] = {}

@@ -627,8 +627,20 @@ def _bind(host: str, port: int) -> socket.socket:
     return sock
 
 
+def bind_api(host: str, port: int, *, allow_remote: bool = False) -> socket.socket:
+    """The API's listening socket, bound now: the daemon binds it before it starts
+    anything else, so that a port in use is one clear error and not a half-started cell.
+    ``ValueError`` for a remote host without ``allow_remote``; ``OSError`` naming host and
+    port when it cannot be bound."""
+    if not allow_remote and not ApiSection.is_loopback(host):
+        raise ValueError(f"refusing to serve the operator API on {host!r}: not a loopback "
+                         "address (set [api] allow_remote = true to allow it)")
+    return _bind(host, port)
+
+
 async def serve(app: FastAPI, host: str, port: int, *, allow_remote: bool = False,
-                grace_s: float = 2.0,
+                grace_s: float = 2.0, sock: socket.socket | None = None,
+                tls: tuple[str, str] | None = None,
                 task_status: TaskStatus[int] = anyio.TASK_STATUS_IGNORED) -> None:
     """Serve ``app`` on ``host:port`` until the surrounding scope is cancelled.
 
@@ -637,9 +649,13 @@ async def serve(app: FastAPI, host: str, port: int, *, allow_remote: bool = Fals
     not loopback is refused unless ``allow_remote`` (``[api] allow_remote``). Installs no
     signal handlers. On cancellation, open connections get up to ``grace_s`` seconds to
     finish (websockets are closed with 1012) before the cancellation goes on.
-    Needs anyio's asyncio backend (uvicorn runs on asyncio).
+    ``sock``: a socket from :func:`bind_api` (then ``host``/``port`` only name it); ``tls``:
+    (certificate file, key file) to serve HTTPS. Needs anyio's asyncio backend (uvicorn
+    runs on asyncio).
     """
     if not allow_remote and not ApiSection.is_loopback(host):
+        if sock is not None:
+            sock.close()
         raise ValueError(f"refusing to serve the operator API on {host!r}: not a loopback "
                          "address (set [api] allow_remote = true to allow it)")
     try:
@@ -650,13 +666,16 @@ async def serve(app: FastAPI, host: str, port: int, *, allow_remote: bool = Fals
     for name in ("uvicorn.error", "uvicorn.access"):
         if _LOG_FILTER not in logging.getLogger(name).filters:
             logging.getLogger(name).addFilter(_LOG_FILTER)
-    sock = _bind(host, port)
+    if sock is None:
+        sock = _bind(host, port)
     actual = int(sock.getsockname()[1])
     # log_config=None: leave the daemon's logging alone; lifespan off: the daemon's task
     # group owns start-up and shutdown; proxy_headers off: audit the real peer address
     config = uvicorn.Config(app, host=host, port=actual, lifespan="off", log_config=None,
                             access_log=False, proxy_headers=False, server_header=False,
-                            timeout_graceful_shutdown=grace_s)
+                            timeout_graceful_shutdown=grace_s,
+                            ssl_certfile=tls[0] if tls else None,
+                            ssl_keyfile=tls[1] if tls else None)
 
     def listening() -> None:
         log.info("operator API listening on %s:%d", host, actual)

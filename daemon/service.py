@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import signal
+import ssl
 import sys
 import tempfile
 from collections.abc import Callable
@@ -32,12 +34,13 @@ import anyio.to_thread
 import numpy as np
 
 from oralnav.config.daemon import DaemonConfig
+from oralnav.config.errors import ConfigError
 from oralnav.config.loader import resolve_file
 from oralnav.drivers.io import open_inputs
 from oralnav.safety.limits import SpeedLimiter
 from oralnav.safety.watchdogs import WatchdogSet
 
-from .api import build_app, serve
+from .api import bind_api, build_app, serve
 from .audit import AuditLog, resolve_audit_path
 from .auth import TokenStore
 from .control_loop import LoopSettings
@@ -55,16 +58,24 @@ def _log(msg: str) -> None:
     print(f"oralnavd: {msg}", file=sys.stderr, flush=True)
 
 
-def load_tokens(cfg: DaemonConfig) -> tuple[TokenStore, dict[str, str]]:
+def load_tokens(cfg: DaemonConfig, cleanup: list[Callable[[], None]] | None = None
+                ) -> tuple[TokenStore, dict[str, str]]:
     """The configured tokens file, or, without one, fresh demo tokens written (0600) to the
     runtime directory, whose path is printed so the operator can read them. Returns the
-    store and the clear demo tokens (empty with a configured file)."""
+    store and the clear demo tokens (empty with a configured file). What must be removed
+    when the daemon stops (the demo tokens' temporary folder, when it made one) is added
+    to ``cleanup``."""
     api = cfg.settings.api
     if api.tokens_file:
         path = resolve_file(cfg.path, "api.tokens_file", api.tokens_file)
         return TokenStore.from_file(path), {}
     runtime = os.environ.get("RUNTIME_DIRECTORY", "").split(":")[0]
-    folder = Path(runtime) if runtime else Path(tempfile.mkdtemp(prefix="oralnavd-"))
+    if runtime:  # systemd's RuntimeDirectory= is removed by systemd when the unit stops
+        folder = Path(runtime)
+    else:
+        folder = Path(tempfile.mkdtemp(prefix="oralnavd-"))
+        if cleanup is not None:  # demo tokens must not outlive the daemon that issued them
+            cleanup.append(partial(shutil.rmtree, folder, ignore_errors=True))
     path = folder / "tokens.toml"
     clear = TokenStore.generate(path)
     secrets_file = folder / "tokens.txt"
@@ -106,11 +117,53 @@ async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
     """Run the daemon until SIGTERM / SIGINT (or until the coroutine that
     ``on_ready(core, port, tokens, nav)`` returns, if any, finishes). Returns the exit
     status."""
+    s = cfg.settings
+    # the API's port first: one taken by another daemon is one clear error before the
+    # control process, the cameras or the renderer start (ConfigError: exit 2)
+    port_wanted = api_port or s.api.port
+    tls = tls_files(cfg)
+    try:
+        api_sock = bind_api(s.api.host, port_wanted, allow_remote=s.api.allow_remote)
+    except OSError as exc:
+        raise ConfigError(cfg.path, "api.port", f"{exc.strerror or exc} (another oralnavd "
+                          "running? choose another port with --api-port)") from None
+    if s.api.allow_remote and tls is None:
+        log.warning("the operator API on %s:%d faces the network over plain HTTP: tokens "
+                    "and commands travel in clear; set [api] tls_cert and tls_key",
+                    s.api.host, port_wanted)
+    cleanup: list[Callable[[], None]] = [api_sock.close]
+    try:
+        return await _run(cfg, api_port, api_sock, tls, cleanup, on_ready)
+    finally:
+        for fn in reversed(cleanup):
+            fn()
+
+
+def tls_files(cfg: DaemonConfig) -> tuple[str, str] | None:
+    """``[api] tls_cert`` and ``tls_key`` as paths, loaded once here so that a bad pair is
+    one clear error at start (ConfigError naming the keys), not a traceback from uvicorn."""
+    api = cfg.settings.api
+    if api.tls_cert is None or api.tls_key is None:
+        return None
+    cert = resolve_file(cfg.path, "api.tls_cert", api.tls_cert)
+    key = resolve_file(cfg.path, "api.tls_key", api.tls_key)
+    try:
+        ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER).load_cert_chain(cert, key)
+    except (ssl.SSLError, OSError) as exc:
+        raise ConfigError(cfg.path, "api.tls_cert", f"{cert} with {key}: not a certificate "
+                          f"and its private key in PEM ({exc})") from None
+    return str(cert), str(key)
+
+
+async def _run(cfg: DaemonConfig, api_port: int | None, api_sock: Any,
+               tls: tuple[str, str] | None, cleanup: list[Callable[[], None]],
+               on_ready: Callable[..., Any] | None) -> int:
+    """:func:`run_service` once the API's socket is bound."""
     from .navigation_task import ArmProbe, NavigationTask, nav_calibration
     from .systemd import Notifier, watchdog_task
 
     s = cfg.settings
-    tokens, clear = load_tokens(cfg)
+    tokens, clear = load_tokens(cfg, cleanup)
     audit = AuditLog(resolve_audit_path(s.api.audit_log)).open()
     control = build_control(cfg, cfg.cell.home_T_B_tcp if cfg.cell is not None else None)
     inputs = open_inputs(s.inputs.backend, **s.inputs.driver_options())
@@ -155,9 +208,11 @@ async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
                 await tg.start(nav.run)
             if capture is not None:
                 await tg.start(capture.run)
-            port = await tg.start(partial(serve, allow_remote=s.api.allow_remote), app,
+            port = await tg.start(partial(serve, allow_remote=s.api.allow_remote,
+                                          sock=api_sock, tls=tls), app,
                                   s.api.host, api_port or s.api.port)
-            _log(f"serving the operator API on http://{s.api.host}:{port} "
+            scheme = "https" if tls else "http"
+            _log(f"serving the operator API on {scheme}://{s.api.host}:{port} "
                  f"(OpenAPI at /docs); audit log {audit.path}")
             # fed only while the control process is alive and its loop beats
             tg.start_soon(watchdog_task, notifier, core.health)

@@ -860,7 +860,12 @@ async def test_serve_reports_a_busy_port(rig):
 @pytest.mark.parametrize("api, where", [
     ({}, None),
     ({"host": "::1", "port": 8751, "telemetry_hz": 5.0}, None),
-    ({"host": "0.0.0.0", "allow_remote": True}, None),
+    ({"host": "0.0.0.0", "allow_remote": True, "tokens_file": "tokens.toml"}, None),
+    ({"tls_cert": "cert.pem", "tls_key": "key.pem"}, None),
+    ({"host": "0.0.0.0", "allow_remote": True}, "[api] tokens_file: allow_remote = true "
+                                                "needs a tokens_file"),
+    ({"tls_cert": "cert.pem"}, "[api] tls_key: HTTPS needs both"),
+    ({"tls_key": "key.pem"}, "[api] tls_key: HTTPS needs both"),
     ({"host": "0.0.0.0"}, "[api] host: '0.0.0.0' is not a loopback address"),
     ({"host": "robot.local"}, "[api] host"),
     ({"host": "0.0.0.0", "allow_remote": "yes"}, "[api] allow_remote"),
@@ -871,7 +876,9 @@ async def test_serve_reports_a_busy_port(rig):
 ])
 def test_api_section_binds_loopback_unless_allowed(tmp_path, api, where):
     """issue 4 config: [api] accepts tokens_file, audit_log, telemetry_hz (1..100 Hz) and
-    allow_remote; a non-loopback host is an error naming [api] host unless allow_remote."""
+    allow_remote; a non-loopback host is an error naming [api] host unless allow_remote.
+    issue 30: allow_remote refuses the demo tokens (a tokens_file is needed), and HTTPS
+    needs both tls_cert and tls_key."""
     from oralnav.config.daemon import ApiSection
     from oralnav.config.errors import ConfigError
     from oralnav.config.loader import validate
@@ -879,7 +886,8 @@ def test_api_section_binds_loopback_unless_allowed(tmp_path, api, where):
     path = tmp_path / "d.toml"
     if where is None:
         sec = validate(ApiSection, api, path, "api")
-        assert sec.audit_log == "oralnav-audit.jsonl" and sec.tokens_file is None
+        assert sec.audit_log == "oralnav-audit.jsonl"
+        assert sec.tokens_file == api.get("tokens_file")
         return
     with pytest.raises(ConfigError) as ei:
         validate(ApiSection, api, path, "api")

@@ -4,6 +4,7 @@ that meets bad input says so in one line with exit status 2."""
 from __future__ import annotations
 
 import os
+import socket
 from pathlib import Path
 
 import pytest
@@ -99,12 +100,37 @@ def test_start_turns_a_config_error_while_loading_tokens_into_one_line(tmp_path,
     traceback."""
     from oralnav.daemon import service
 
-    def broken(cfg):
+    def broken(cfg, cleanup=None):
         raise ConfigError(tmp_path / "tokens.toml", "tokens.alice.role", "changed under us")
 
     monkeypatch.setattr(service, "load_tokens", broken)
-    assert main.run(["--config", str(_with_tokens(tmp_path, TOKENS, 0o600))]) == 2
+    assert main.run(["--config", str(_with_tokens(tmp_path, TOKENS, 0o600)),
+                     "--api-port", str(_free_port())]) == 2
     err = capsys.readouterr().err
     assert "Traceback" not in err
     assert err.strip().splitlines()[-1] == (f"oralnavd: error: {tmp_path / 'tokens.toml'}: "
                                             "[tokens.alice] role: changed under us")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_port_in_use_is_one_line_before_anything_starts(tmp_path, capsys):
+    """issue 30: the API's port already in use ends the start with one line naming [api]
+    port and the address, exit 2, before the control process, the audit log or anything
+    else is started (no ExceptionGroup traceback after a READY cell)."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        path = _with_tokens(tmp_path, TOKENS, 0o600)
+        assert main.run(["--config", str(path), "--api-port", str(port)]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "READY" not in err, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(f"oralnavd: error: {path}: [api] port: cannot bind the API to "
+                           f"127.0.0.1:{port}"), last
+    assert not (tmp_path / "audit.jsonl").exists()

@@ -10,12 +10,14 @@ import os
 import re
 import signal
 import socket
+import ssl
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import httpx
+import pytest
 
 from ..drivers.test_camera_aravis import ARAVIS_MISSING
 
@@ -270,3 +272,48 @@ connect_timeout = 0.5
                 proc.communicate()
     assert proc.returncode == 0, err[-3000:]
     assert f"{ur_host}" in err  # the log names the controller it could not reach
+
+
+def test_https_and_demo_tokens_removed_at_exit(tmp_path: Path) -> None:
+    """issue 30: with [api] tls_cert and tls_key the daemon serves HTTPS (a client that
+    trusts the certificate reads /health); demo tokens generated into a temporary folder
+    (no $RUNTIME_DIRECTORY) are removed when the daemon stops."""
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
+                    "-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1",
+                    "-keyout", str(tmp_path / "key.pem"), "-out", str(tmp_path / "cert.pem")],
+                   check=True, capture_output=True)
+    config = _hardware_cell(tmp_path, '[api]\ntls_cert = "cert.pem"\ntls_key = "key.pem"\n'
+                                      f'audit_log = "{tmp_path}/audit.jsonl"\n')
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    port = _free_port()
+    env = {k: v for k, v in os.environ.items() if k != "RUNTIME_DIRECTORY"}
+    env["TMPDIR"] = str(temp)
+    proc = subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main", "--config",
+                             str(config), "--api-port", str(port)], env=env, cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        trust = ssl.create_default_context(cafile=str(tmp_path / "cert.pem"))
+        while True:
+            assert proc.poll() is None, proc.stderr.read()
+            try:
+                r = httpx.get(f"https://127.0.0.1:{port}/health", timeout=0.5, verify=trust)
+                break
+            except httpx.TransportError:
+                assert time.monotonic() < deadline, "the API never came up"
+                time.sleep(0.1)
+        assert r.status_code == 200 and r.json()["ok"] is True
+        with pytest.raises(httpx.TransportError):  # plain HTTP is not served
+            httpx.get(f"http://127.0.0.1:{port}/health", timeout=2)
+        (folder,) = list(temp.glob("oralnavd-*"))
+        assert (folder / "tokens.txt").is_file()
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert "https://127.0.0.1" in err
+    assert list(temp.iterdir()) == [], "demo tokens left behind"
