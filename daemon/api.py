@@ -146,8 +146,25 @@ class GuidePlanBody(_Body):
     """
 
     scene: Annotated[str, StringConstraints(min_length=1, max_length=MAX_PATH_CHARS)]
-    T_OM_F: tuple[_Row4, _Row4, _Row4, _Row4]
+    T_OM_F: tuple[_Row4, _Row4, _Row4, _Row4] = Field(
+        description="rigid 4x4 transform, row by row, metres: an orthonormal rotation with "
+                    "determinant +1 and the last row [0, 0, 0, 1] (anything else is 422)",
+        json_schema_extra=lambda schema: schema["prefixItems"].__setitem__(
+            3, {"const": [0.0, 0.0, 0.0, 1.0]}))
     seed: Annotated[int, Field(ge=0, le=2**32 - 1, strict=True)] | None = None
+
+    @field_validator("T_OM_F")
+    @classmethod
+    def _rigid(cls, v: tuple[tuple[float, ...], ...]) -> tuple[tuple[float, ...], ...]:
+        # the same check the planning applies (daemon/guidance.py), at the door: a 4x4
+        # that is not rigid is refused naming what is wrong before anything is planned
+        from .guidance import GuidePlanError, check_registration
+
+        try:
+            check_registration(v)
+        except GuidePlanError as exc:
+            raise ValueError(str(exc)) from None
+        return v
 
     @field_validator("scene")
     @classmethod
@@ -163,6 +180,49 @@ class NeedleCellBody(_Body):
 
     trial: Annotated[int, Field(ge=0, le=2**32 - 1, strict=True)]
     difficulty: Annotated[float, Field(ge=0.0, le=1.0)] = 1.0
+
+
+# -- error answers, as the OpenAPI schema declares them -------------------------------------
+class Problem(BaseModel):
+    """An error answer: ``detail`` says what was wrong, in words."""
+
+    detail: str
+
+
+class WhereWhy(BaseModel):
+    """One thing wrong in a request: where (``targets[0].p_OM[1]``) and why."""
+
+    where: str
+    reason: str
+
+
+class ValidationProblem(Problem):
+    """A body or path that does not validate (422), or a body that is not JSON (400):
+    ``detail`` joins the ``errors`` into one line."""
+
+    errors: list[WhereWhy] = []
+
+
+def _answers(**codes: tuple[type[BaseModel], str]) -> dict[int | str, dict[str, Any]]:
+    return {int(code[1:]): {"model": model, "description": text}
+            for code, (model, text) in codes.items()}
+
+
+_READ_ERRORS = _answers(
+    _401=(Problem, "missing or unknown bearer token"),
+    _409=(Problem, "not available in the current state"))
+#: what every state-changing POST may answer besides 200 (docs/api.md)
+_COMMAND_ERRORS = _answers(
+    _400=(ValidationProblem, "the body is not JSON (not UTF-8, or nested too deeply)"),
+    _401=(Problem, "missing or unknown bearer token (checked before the body is read)"),
+    _403=(Problem, "the token lacks the operator role"),
+    _409=(Problem, "not allowed in the current state; nothing changed"),
+    _413=(Problem, "the body is larger than this endpoint accepts"),
+    _422=(ValidationProblem, "the body or path does not validate, or the core refused a "
+                             "value; nothing changed"),
+    _503=(Problem, "the audit log cannot be written: the command did not run"))
+#: the e-stop runs whatever the state and whatever the audit log
+_ESTOP_ERRORS = {k: v for k, v in _COMMAND_ERRORS.items() if k not in (409, 503)}
 
 
 # -- what the daemon core provides -----------------------------------------------------
@@ -412,52 +472,62 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
             doc["reason"] = why
         return JSONResponse(doc, 200 if ok else 503)
 
-    @app.get("/status", summary="Safety state, reasons, loop rates and latencies")
+    @app.get("/status", responses=_READ_ERRORS,
+             summary="Safety state, reasons, loop rates and latencies")
     async def get_status(_: Observer) -> JSONResponse:
         return read(ops.status)
 
-    @app.get("/poses", summary="Newest poses with their timestamps")
+    @app.get("/poses", responses=_READ_ERRORS,
+             summary="Newest poses with their timestamps")
     async def get_poses(_: Observer) -> JSONResponse:
         return read(ops.poses)
 
-    @app.get("/targets", summary="The current suture targets")
+    @app.get("/targets", responses=_READ_ERRORS,
+             summary="The current suture targets")
     async def get_targets(_: Observer) -> JSONResponse:
         return read(lambda: {"targets": ops.targets()})
 
-    @app.post("/estop", summary="Latch the e-stop (always runs, even if auditing fails)")
+    @app.post("/estop", responses=_ESTOP_ERRORS,
+              summary="Latch the e-stop (always runs, even if auditing fails)")
     async def post_estop(request: Request, who: Operator,
                          body: EstopBody | None = None) -> JSONResponse:
         reason = body.reason if body else EstopBody().reason
         return await command(request, who, "estop", lambda: ops.estop(who.name, reason),
                              audit_first=False)
 
-    @app.post("/reset", summary="Clear a latched stop (409 when not allowed)")
+    @app.post("/reset", responses=_COMMAND_ERRORS,
+              summary="Clear a latched stop (409 when not allowed)")
     async def post_reset(request: Request, who: Operator) -> JSONResponse:
         return await command(request, who, "reset", lambda: ops.reset(who.name))
 
-    @app.post("/recover/{device}", summary="Recover a device from its fault while the stop "
+    @app.post("/recover/{device}", responses=_COMMAND_ERRORS,
+              summary="Recover a device from its fault while the stop "
               "is latched: the wrist drive's fault reset, or the arm controller's recovery "
               "(409 otherwise)")
     async def post_recover(request: Request, who: Operator, device: Device) -> JSONResponse:
         return await command(request, who, f"recover {device}",
                              lambda: ops.recover(device, who.name))
 
-    @app.post("/procedure/{action}", summary="Start, pause, resume or abort the procedure")
+    @app.post("/procedure/{action}", responses=_COMMAND_ERRORS,
+              summary="Start, pause, resume or abort the procedure")
     async def post_procedure(request: Request, who: Operator,
                              action: ProcedureAction) -> JSONResponse:
         return await command(request, who, f"procedure {action}",
                              lambda: ops.procedure(action, who.name))
 
-    @app.post("/targets", summary="Replace the suture targets (409 while running)")
+    @app.post("/targets", responses=_COMMAND_ERRORS,
+              summary="Replace the suture targets (409 while running)")
     async def post_targets(request: Request, who: Operator, body: TargetsBody) -> JSONResponse:
         return await command(request, who, "set targets",
                              lambda: ops.set_targets(list(body.targets), who.name))
 
-    @app.get("/guide", summary="The guided-insertion plan and live guidance status")
+    @app.get("/guide", responses=_READ_ERRORS,
+             summary="The guided-insertion plan and live guidance status")
     async def get_guide(_: Observer) -> JSONResponse:
         return read(ops.guide)
 
-    @app.post("/guide/plan", summary="Plan a guided insertion from a planning scene (422 "
+    @app.post("/guide/plan", responses=_COMMAND_ERRORS,
+              summary="Plan a guided insertion from a planning scene (422 "
                                      "bad scene, 409 no collision-free placement)")
     async def post_guide_plan(request: Request, who: Operator,
                               body: GuidePlanBody) -> JSONResponse:
@@ -466,27 +536,32 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
                                                     body.seed),
                              in_thread=True)
 
-    @app.post("/guide/start", summary="Start the planned guided insertion (GUIDE mode; 409 "
+    @app.post("/guide/start", responses=_COMMAND_ERRORS,
+              summary="Start the planned guided insertion (GUIDE mode; 409 "
                                       "when not allowed)")
     async def post_guide_start(request: Request, who: Operator) -> JSONResponse:
         return await command(request, who, "guide start", lambda: ops.start_guide(who.name))
 
-    @app.post("/guide/stop", summary="End guidance (HOLD) and clear the plan")
+    @app.post("/guide/stop", responses=_COMMAND_ERRORS,
+              summary="End guidance (HOLD) and clear the plan")
     async def post_guide_stop(request: Request, who: Operator) -> JSONResponse:
         return await command(request, who, "guide stop", lambda: ops.stop_guide(who.name))
 
-    @app.get("/needle", summary="The needle cell, the procedure's next step and results")
+    @app.get("/needle", responses=_READ_ERRORS,
+             summary="The needle cell, the procedure's next step and results")
     async def get_needle(_: Observer) -> JSONResponse:
         return read(ops.needle)
 
-    @app.post("/needle/cell", summary="Load a simulated needle trial cell (a fresh procedure)")
+    @app.post("/needle/cell", responses=_COMMAND_ERRORS,
+              summary="Load a simulated needle trial cell (a fresh procedure)")
     async def post_needle_cell(request: Request, who: Operator,
                                body: NeedleCellBody) -> JSONResponse:
         return await command(request, who, "needle cell",
                              lambda: ops.needle_cell(body.trial, body.difficulty, who.name),
                              in_thread=True)
 
-    @app.post("/needle/{step}", summary="Run needle step NG, NH, ND, NR or NP (409 when "
+    @app.post("/needle/{step}", responses=_COMMAND_ERRORS,
+              summary="Run needle step NG, NH, ND, NR or NP (409 when "
                                         "refused before moving or out of turn)")
     async def post_needle_step(request: Request, who: Operator,
                                step: NeedleStep) -> JSONResponse:
