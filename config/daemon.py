@@ -165,6 +165,18 @@ class ApiSection(Strict):
     # HTTPS: PEM certificate (chain) and private key, relative to this file; both or none
     tls_cert: str | None = Field(None, min_length=1)
     tls_key: str | None = Field(None, min_length=1, validate_default=True)
+    # the audit log is rotated before a record would take it past audit_max_bytes, and
+    # audit_keep rotated files are kept (docs/api.md "Audit log"; oralnav.daemon.audit)
+    audit_max_bytes: Annotated[Int, Field(ge=64 * 1024, le=1 << 40)] = 64 << 20
+    audit_keep: Annotated[Int, Field(ge=1, le=1000)] = 5
+    # failed authentication per client address (docs/api.md "Rate limits and lockout";
+    # the defaults are oralnav.daemon.api_gate's constants): a burst of failures locks the
+    # address out for auth_lockout_s, doubling on repeats up to auth_lockout_max_s; one
+    # failure is forgiven every auth_failure_refill_s
+    auth_failure_burst: Annotated[Int, Field(ge=1, le=1000)] = 10
+    auth_failure_refill_s: Annotated[Float, Field(ge=0.1, le=3600)] = 6.0
+    auth_lockout_s: Annotated[Float, Field(ge=1, le=86400)] = 60.0
+    auth_lockout_max_s: Annotated[Float, Field(ge=1, le=86400)] = 900.0
 
     @field_validator("tokens_file")
     @classmethod
@@ -183,6 +195,15 @@ class ApiSection(Strict):
             raise ValueError("HTTPS needs both tls_cert and tls_key"
                              + (" (tls_key is missing)" if v is None else
                                 " (tls_cert is missing)"))
+        return v
+
+    @field_validator("auth_lockout_max_s")
+    @classmethod
+    def _lockout_bound(cls, v: float, info: ValidationInfo) -> float:
+        first = info.data.get("auth_lockout_s")
+        if first is not None and v < first:
+            raise ValueError(f"{v:g} s is shorter than auth_lockout_s ({first:g} s): "
+                             "repeated lockouts only grow")
         return v
 
     @staticmethod

@@ -13,9 +13,13 @@ Rules every endpoint keeps:
 - every state change is a POST and needs the ``operator`` role;
 - a refused request (401/403/400/422/409/503) calls nothing in ``ops`` except the one
   that refuses it, and changes nothing;
-- every command (POST, telemetry connect) leaves one line in the audit log, refused or not;
-  when the log cannot be written the command is refused with 503 (the e-stop excepted:
-  it always runs, see :func:`build_app`).
+- every command (POST, telemetry connect) is audited, refused or not: a command that runs
+  writes its intent (fsynced) before it runs and its outcome after (write-ahead), a
+  refusal one record; when the intent cannot be written the command is refused with 503
+  (the e-stop excepted: it always runs, see :func:`build_app`);
+- failed authentication is limited per client address: past a burst of 401s the address
+  is locked out (429, ``Retry-After``) before any token is checked, and its refused
+  requests are audited in aggregate (``daemon/api_gate.py``).
 """
 
 # no ``from __future__ import annotations``: FastAPI must evaluate the endpoints' local
@@ -48,7 +52,7 @@ from oralnav.config.daemon import ApiSection
 from oralnav.config.loader import Float
 from oralnav.safety.errors import StateError
 
-from .api_gate import COMMAND_METHODS, RequestGate
+from .api_gate import COMMAND_METHODS, FailureLimiter, LockoutEvent, RequestGate, count_failure
 from .api_gate import Refused as _Refused
 from .api_gate import authorize as _authorize
 from .api_gate import bearer_from_header as _bearer_from_header
@@ -208,9 +212,12 @@ def _answers(**codes: tuple[type[BaseModel], str]) -> dict[int | str, dict[str, 
             for code, (model, text) in codes.items()}
 
 
+_TOO_MANY = (Problem, "too many failed authentications from this address: refused "
+                     "until the lockout ends (Retry-After: seconds)")
 _READ_ERRORS = _answers(
     _401=(Problem, "missing or unknown bearer token"),
-    _409=(Problem, "not available in the current state"))
+    _409=(Problem, "not available in the current state"),
+    _429=_TOO_MANY)
 #: what every state-changing POST may answer besides 200 (docs/api.md)
 _COMMAND_ERRORS = _answers(
     _400=(ValidationProblem, "the body is not JSON (not UTF-8, or nested too deeply)"),
@@ -220,6 +227,7 @@ _COMMAND_ERRORS = _answers(
     _413=(Problem, "the body is larger than this endpoint accepts"),
     _422=(ValidationProblem, "the body or path does not validate, or the core refused a "
                              "value; nothing changed"),
+    _429=_TOO_MANY,
     _503=(Problem, "the audit log cannot be written: the command did not run"))
 #: the e-stop runs whatever the state and whatever the audit log
 _ESTOP_ERRORS = {k: v for k, v in _COMMAND_ERRORS.items() if k not in (409, 503)}
@@ -327,8 +335,11 @@ async def _body(request: Request) -> bytes:
 
 # -- the app -----------------------------------------------------------------------------
 def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
-              telemetry_hz: float = 20.0) -> FastAPI:
-    """The operator API over ``ops``; ``telemetry_hz`` is the websocket snapshot rate.
+              telemetry_hz: float = 20.0,
+              auth_limiter: FailureLimiter | None = None) -> FastAPI:
+    """The operator API over ``ops``; ``telemetry_hz`` is the websocket snapshot rate;
+    ``auth_limiter`` limits failed authentication per client address (default: the
+    limits of ``daemon/api_gate.py``; it is also ``app.state.auth_limiter``).
 
     ``audit`` must be open. The e-stop is never refused for an audit failure: refusing to
     stop a robot because a disk is full would trade safety for bookkeeping. It runs, its
@@ -355,20 +366,40 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
     Operator = Annotated[Principal, Depends(require("operator"))]
 
     async def record(conn: Request | WebSocket, principal: Principal | None, status: int,
-                     result: str, body: bytes = b"", method: str | None = None) -> bool:
-        """One audit record from a worker thread (fsync must not stall the loop); False
-        when it could not be written (it is then kept for retry and journaled)."""
+                     result: str, body: bytes = b"", method: str | None = None,
+                     outcome_of: str | None = None) -> bool:
+        """One audit record from a worker thread (fsync must not stall the loop): the
+        outcome of intent ``outcome_of``, else a single record. False when it could not
+        be written (it is then kept for retry and journaled)."""
         try:
             await anyio.to_thread.run_sync(functools.partial(
                 audit.record, who=principal.name if principal else None,
                 role=principal.role if principal else None,
                 method=method or getattr(conn, "method", "WS"), path=conn.url.path,
-                body=body, status=status, result=result, client=_client(conn)))
+                body=body, status=status, result=result, client=_client(conn),
+                outcome_of=outcome_of))
         except AuditError:
             return False  # audit.record has logged it with the record
         return True
 
-    app.add_middleware(RequestGate, tokens=tokens, record=record)
+    limiter = FailureLimiter() if auth_limiter is None else auth_limiter
+    app.state.auth_limiter = limiter
+
+    async def note_lockout(event: LockoutEvent) -> bool:
+        """The audit record of a lockout's start, summary or end (one record stands for
+        every request it refused; docs/api.md)."""
+        try:
+            await anyio.to_thread.run_sync(functools.partial(
+                audit.record, who=None, role=None, method="*", path="*", status=429,
+                result=event.describe(), client=event.client,
+                extra={"lockout": event.kind, "refused": event.refused,
+                       "lockout_s": event.seconds}))
+        except AuditError:
+            return False
+        return True
+
+    app.add_middleware(RequestGate, tokens=tokens, record=record, limiter=limiter,
+                       note=note_lockout)
 
     async def audit_ready() -> str | None:
         """None when a command may run, else why the audit log refuses it."""
@@ -389,6 +420,8 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
     async def _on_refused(request: Request, exc: _Refused) -> JSONResponse:
         audited = await record(request, exc.principal, exc.status, exc.detail,
                                await _body(request))
+        if exc.status == 401:  # a wrong or missing token: counts towards a lockout
+            await count_failure(limiter, note_lockout, request.scope)
         return reply(exc.status, {"detail": exc.detail}, audited, exc.headers)
 
     @app.exception_handler(RequestValidationError)
@@ -427,14 +460,24 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
 
     async def command(request: Request, who: Principal, name: str, run: Callable[[], Any],
                       *, audit_first: bool = True, in_thread: bool = False) -> JSONResponse:
-        """Run one state-changing command: audit check, ``run()``, audit record, reply.
-        ``in_thread``: ``run`` blocks (planning), so it runs in a worker thread. A dict
-        that ``run`` returns is added to the 200 answer."""
+        """Run one state-changing command, write-ahead: its intent is written and fsynced
+        (or the command is refused with 503 and does not run), then ``run()``, then its
+        outcome record (same id), then the reply. ``audit_first=False`` (the e-stop):
+        ``run()`` first, whatever the log, then one single record. ``in_thread``: ``run``
+        blocks (planning), so it runs in a worker thread. A dict that ``run`` returns is
+        added to the 200 answer."""
+        body = await _body(request)
+        intent: str | None = None
         if audit_first:
-            why = await audit_ready()
-            if why is not None:
-                detail = f"command refused: the audit log cannot be written ({why})"
-                await record(request, who, 503, detail, await _body(request))
+            try:
+                intent = await anyio.to_thread.run_sync(functools.partial(
+                    audit.intent, who=who.name, role=who.role, method=request.method,
+                    path=request.url.path, body=body, client=_client(request)))
+            except AuditError as exc:
+                detail = f"command refused: the audit log cannot be written ({exc})"
+                # the refusal completes the intent when part of it may be in the file
+                await record(request, who, 503, detail, b"" if exc.record_id else body,
+                             outcome_of=exc.record_id)
                 return reply(503, {"detail": detail}, False)
         extra: Any = None
         try:
@@ -447,7 +490,9 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
         except Exception as exc:
             log.exception("%s by %s failed", name, who.name)
             status, result = 500, f"internal error: {type(exc).__name__}: {exc}"
-        audited = await record(request, who, status, result, await _body(request))
+        # the outcome names the intent; its body is in the intent already
+        audited = await record(request, who, status, result, b"" if intent else body,
+                               outcome_of=intent)
         content: dict[str, Any] = ({"ok": True, "command": name, "by": who.name,
                                     "audited": audited} if status == 200
                                    else {"detail": result})
@@ -578,6 +623,8 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
             who = _authorize(tokens, token, "observer")
         except _Refused as exc:
             await record(ws, exc.principal, exc.status, exc.detail, method="WS")
+            if exc.status == 401:
+                await count_failure(limiter, note_lockout, ws.scope)
             await _deny(ws, exc.status, exc.detail, exc.headers)
             return
         why = await audit_ready()

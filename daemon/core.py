@@ -100,6 +100,9 @@ class DaemonCore:
         #: the control loop's heartbeat watch (``daemon/heartbeat.py``), when the service
         #: runs one; the supervision tick looks at it too
         self.heartbeat: Any = None
+        #: the operator audit log (``daemon/audit.py``), when the service has one: its
+        #: commands without a recorded outcome and records waiting show in the status
+        self.audit: Any = None
 
     # -- the latched stop's handler (sync, never blocks) ---------------------------------
     def _stop_robot(self, record: Any) -> None:
@@ -255,7 +258,12 @@ class DaemonCore:
             inputs = {"connected": ins.connected, "estop_pressed": ins.estop_pressed,
                       "pedal_pressed": ins.pedal_pressed, "fault": ins.fault,
                       "age_s": self.clock() - ins.timestamp}
+        audit = None
+        if self.audit is not None:
+            audit = {"path": str(self.audit.path), "incomplete": self.audit.incomplete,
+                     "pending": self.audit.pending}
         return jsonable({"safety": sup, "control_loop": loop, "inputs": inputs,
+                         "audit": audit,
                          "rates_hz": rates,
                          "uptime_s": self.clock() - self._started,
                          "procedure": dict(self.procedure_info),

@@ -41,7 +41,8 @@ from oralnav.safety.limits import SpeedLimiter
 from oralnav.safety.watchdogs import WatchdogSet
 
 from .api import bind_api, build_app, serve
-from .audit import AuditLog, resolve_audit_path
+from .api_gate import AuthLimits, FailureLimiter
+from .audit import AuditLog
 from .auth import TokenStore
 from .control_loop import LoopSettings
 from .control_process import ControlProcess, DriverSpec, ProcessSpec
@@ -164,13 +165,15 @@ async def _run(cfg: DaemonConfig, api_port: int | None, api_sock: Any,
 
     s = cfg.settings
     tokens, clear = load_tokens(cfg, cleanup)
-    audit = AuditLog(resolve_audit_path(s.api.audit_log)).open()
+    audit = AuditLog.from_config(s.api).open()
     control = build_control(cfg, cfg.cell.home_T_B_tcp if cfg.cell is not None else None)
     inputs = open_inputs(s.inputs.backend, **s.inputs.driver_options())
     notifier = Notifier()
     core = DaemonCore(control, WatchdogSet.from_settings(s.safety, 1.0 / s.control.rate_hz),
                       inputs=inputs)
-    app = build_app(core, tokens, audit, telemetry_hz=s.api.telemetry_hz)
+    core.audit = audit  # its incomplete and pending records show in GET /status
+    app = build_app(core, tokens, audit, telemetry_hz=s.api.telemetry_hz,
+                    auth_limiter=FailureLimiter(AuthLimits.from_config(s.api)))
     nav = None
     if cfg.cell is not None:
         from oralnav.drivers.camera.sim import SimCameraSet

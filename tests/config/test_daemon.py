@@ -392,3 +392,34 @@ def test_another_kind_of_file_given_as_configuration_says_what_it_is(name, what,
     in one line, instead of listing its keys as unknown ones."""
     msg = _expect(CONFIG / name, "not a daemon configuration", what, where)
     assert "unknown key" not in msg
+
+
+@pytest.mark.parametrize("api, where", [
+    ({}, None),
+    ({"audit_max_bytes": 1 << 20, "audit_keep": 2, "auth_failure_burst": 3,
+      "auth_failure_refill_s": 1.5, "auth_lockout_s": 5.0, "auth_lockout_max_s": 5.0}, None),
+    ({"audit_max_bytes": 1000}, "[api] audit_max_bytes"),
+    ({"audit_keep": 0}, "[api] audit_keep"),
+    ({"audit_keep": 1.5}, "[api] audit_keep"),
+    ({"auth_failure_burst": 0}, "[api] auth_failure_burst"),
+    ({"auth_failure_refill_s": 0.0}, "[api] auth_failure_refill_s"),
+    ({"auth_lockout_s": 0.5}, "[api] auth_lockout_s"),
+    ({"auth_lockout_s": 120.0, "auth_lockout_max_s": 60.0}, "[api] auth_lockout_max_s"),
+])
+def test_api_audit_rotation_and_lockout_keys(tmp_path, api, where):
+    """issue 30: [api] audit_max_bytes (>= 64 KiB) and audit_keep (>= 1) bound the audit
+    log; auth_failure_burst, auth_failure_refill_s, auth_lockout_s and auth_lockout_max_s
+    (never shorter than auth_lockout_s) set the lockout of failed authentication; each
+    error names the key."""
+    from oralnav.config.daemon import ApiSection
+    from oralnav.config.loader import validate
+
+    path = tmp_path / "d.toml"
+    if where is None:
+        sec = validate(ApiSection, api, path, "api")
+        assert sec.audit_max_bytes == api.get("audit_max_bytes", 64 << 20)
+        assert sec.audit_keep == api.get("audit_keep", 5)
+        return
+    with pytest.raises(ConfigError) as ei:
+        validate(ApiSection, api, path, "api")
+    assert str(ei.value).startswith(f"{path}: {where}:"), str(ei.value)

@@ -194,6 +194,25 @@ def audit_lines(rig) -> list[dict]:
     return [json.loads(x) for x in rig.path.read_text().splitlines()]
 
 
+def audit_results(rig) -> list[dict]:
+    """The records that say how a request ended: outcomes and single records, each
+    checked against its intent when it has one (issue 30: write-ahead)."""
+    recs = audit_lines(rig)
+    intents = {x["id"]: x for x in recs if x["phase"] == "intent"}
+    out = []
+    for x in recs:
+        if x["phase"] == "outcome":
+            intent = intents.pop(x["id"])
+            assert recs.index(intent) < recs.index(x)
+            assert (intent["who"], intent["method"], intent["path"]) == \
+                (x["who"], x["method"], x["path"])
+            out.append({**x, "body": intent["body"]})
+        elif x["phase"] == "single":
+            out.append(x)
+    assert not intents, f"intents without an outcome: {intents}"
+    return out
+
+
 def body_for(path: str) -> dict | None:
     return {"/targets": GOOD_TARGETS, "/guide/plan": GOOD_PLAN,
             "/needle/cell": {"trial": 3}}.get(path)
@@ -420,10 +439,13 @@ async def test_operator_drives_the_procedure(client, rig):
         ("procedure", "pause", "operator"), ("procedure", "resume", "operator"),
         ("procedure", "abort", "operator"), ("estop", "operator", "test stop"),
         ("reset", "operator")]
-    recs = audit_lines(rig)
+    recs = audit_results(rig)
     assert [(x["path"], x["status"], x["who"]) for x in recs] == \
         [(p, 200, "operator") for p, _ in steps]
     assert recs[0]["body"].startswith('{"targets":[{"name":"s1"')
+    # issue 30: every command but the e-stop wrote its intent before it ran
+    assert [x["phase"] for x in audit_lines(rig)] == \
+        ["intent", "outcome"] * 5 + ["single"] + ["intent", "outcome"]
 
 
 async def test_estop_body_is_optional(client, rig):
@@ -449,7 +471,7 @@ async def test_state_error_is_409_and_changes_nothing(client, rig):
     r = await client.post("/targets", headers=rig.op, json=GOOD_TARGETS)
     assert r.status_code == 409 and "RUNNING" in r.json()["detail"]
     assert rig.ops.targets() == before and rig.ops.calls == [] and rig.ops.state == "RUNNING"
-    recs = audit_lines(rig)
+    recs = audit_results(rig)
     assert [x["status"] for x in recs] == [409, 409, 409]
     assert recs[2]["result"] == "targets cannot change while RUNNING"
 
@@ -463,7 +485,7 @@ async def test_limit_error_is_422_and_core_bug_is_500(client, rig):
     body = {"targets": [{"name": "boom", "p_OM": [0.0, 0.0, 0.01]}]}
     r = await client.post("/targets", headers=rig.op, json=body)
     assert r.status_code == 500 and "RuntimeError: core bug" in r.json()["detail"]
-    assert [x["status"] for x in audit_lines(rig)] == [422, 500]
+    assert [x["status"] for x in audit_results(rig)] == [422, 500]
 
 
 def _target(**kw) -> dict:
@@ -569,7 +591,7 @@ async def test_guide_plan_start_stop_over_rest(client, rig):
     assert (await client.post("/guide/stop", headers=rig.op)).status_code == 200
     assert rig.ops.calls[1:] == [("start_guide", "operator"), ("stop_guide", "operator")]
     assert (await client.get("/guide", headers=rig.obs)).json()["plan"] is None
-    recs = audit_lines(rig)
+    recs = audit_results(rig)
     assert [(x["path"], x["status"]) for x in recs] == [
         ("/guide/plan", 200), ("/guide/start", 200), ("/guide/plan", 409),
         ("/guide/stop", 200)]
@@ -617,13 +639,14 @@ async def test_guide_refusals_from_the_core(client, rig):
                           json=GOOD_PLAN | {"scene": "unsafe.toml"})
     assert r.status_code == 409 and "collision-free" in r.json()["detail"]
     assert rig.ops.plan["scene"] == GOOD_PLAN["scene"]
-    assert [x["status"] for x in audit_lines(rig)] == [422, 409, 200, 409]
+    assert [x["status"] for x in audit_results(rig)] == [422, 409, 200, 409]
 
 
 # -- audit ---------------------------------------------------------------------------------
 async def test_every_command_is_audited_and_earlier_lines_stay(client, rig):
     """issue 4 audit: each command, accepted or refused (401, 403, 422, 409), adds exactly
-    one line, after the lines already in the file, which stay unchanged."""
+    one line, after the lines already in the file, which stay unchanged. issue 30: a
+    command that reaches the core (409, 200) adds two, its intent and its outcome."""
     rig.audit.close()
     rig.path.write_text('{"earlier": "run"}\n')
     rig.audit.open()
@@ -636,7 +659,8 @@ async def test_every_command_is_audited_and_earlier_lines_stay(client, rig):
     lines = rig.path.read_text().splitlines()
     assert lines[0] == '{"earlier": "run"}'
     recs = [json.loads(x) for x in lines[1:]]
-    assert [x["status"] for x in recs] == [401, 403, 422, 409, 200]
+    assert [x["status"] for x in recs] == [401, 403, 422, None, 409, None, 200]
+    assert [x["phase"] for x in recs] == ["single"] * 3 + ["intent", "outcome"] * 2
     assert recs[0]["who"] is None and recs[0]["client"]
     assert all(x["method"] == "POST" for x in recs)
 
@@ -665,10 +689,15 @@ async def test_audit_failure_refuses_commands_with_503(client, rig, broken):
 async def test_record_lost_after_running_blocks_until_written(client, rig, monkeypatch):
     """issue 4 audit: if the record of a command that ran cannot be written, the reply says
     so (X-Audit: failed), later commands get 503 without reaching the core until the
-    record is written, and then the log holds every record in order."""
+    record is written, and then the log holds every record in order. issue 30: the
+    intent landed, the outcome did not."""
     real = audit_mod.os.write
+    writes = {"n": 0}
 
     def full(fd, data):
+        writes["n"] += 1
+        if writes["n"] == 1:  # the intent lands; from its outcome on the disk is full
+            return real(fd, data)
         raise OSError(28, "No space left on device")
 
     await client.post("/estop", headers=rig.op)
@@ -682,8 +711,45 @@ async def test_record_lost_after_running_blocks_until_written(client, rig, monke
     monkeypatch.setattr(audit_mod.os, "write", real)
     r = await client.post("/procedure/start", headers=rig.op)
     assert r.status_code == 200
-    assert [(x["path"], x["status"]) for x in audit_lines(rig)] == [
+    assert [(x["path"], x["status"]) for x in audit_results(rig)] == [
         ("/estop", 200), ("/reset", 200), ("/procedure/start", 503), ("/procedure/start", 200)]
+
+
+async def test_the_intent_is_durable_before_the_command_runs(client, rig, monkeypatch):
+    """issue 30, write-ahead: when the core runs a command its intent is already in the
+    file (so a crash while it runs leaves a trace); a command whose intent cannot be written
+    does not run (503, completed by an outcome carrying the intent's id); the e-stop runs
+    first and leaves a single record."""
+    seen: list[list[tuple[str, str]]] = []
+    real = rig.ops.procedure
+
+    def procedure(action: str, who: str) -> None:
+        seen.append([(x["phase"], x["path"]) for x in audit_lines(rig)])
+        real(action, who)
+
+    monkeypatch.setattr(rig.ops, "procedure", procedure)
+    assert (await client.post("/procedure/start", headers=rig.op)).status_code == 200
+    assert seen == [[("intent", "/procedure/start")]]
+
+    real_fsync, fsyncs = audit_mod.os.fsync, []
+
+    def fsync_fails_once(fd):  # the intent's bytes are written, its fsync fails
+        fsyncs.append(fd)
+        if len(fsyncs) == 1:
+            raise OSError(5, "Input/output error")
+        real_fsync(fd)
+
+    monkeypatch.setattr(audit_mod.os, "fsync", fsync_fails_once)
+    r = await client.post("/procedure/pause", headers=rig.op)
+    assert r.status_code == 503 and "Input/output error" in r.json()["detail"]
+    assert len(seen) == 1 and rig.ops.state == "RUNNING"
+    r = await client.post("/estop", headers=rig.op)
+    assert r.status_code == 200 and rig.ops.state == "ESTOP"
+    recs = audit_lines(rig)
+    assert [(x["phase"], x["path"], x["status"]) for x in recs[2:]] == [
+        ("intent", "/procedure/pause", None), ("outcome", "/procedure/pause", 503),
+        ("single", "/estop", 200)]
+    assert recs[2]["id"] == recs[3]["id"]
 
 
 # -- OpenAPI -------------------------------------------------------------------------------
