@@ -420,9 +420,9 @@ class RequestGate:
         headers = dict(headers or {})
         if not audited:
             headers["X-Audit"] = "failed"
-        if status == 413:
-            # the unread rest of the body makes the connection unusable: say so
-            headers["Connection"] = "close"
+        # the body is left unread: close the connection after the answer, or the server
+        # would go on receiving (and parsing past) the rest of it, however large
+        headers["Connection"] = "close"
         await JSONResponse({"detail": detail}, status, headers=headers)(scope, receive, send)
 
 
@@ -436,6 +436,7 @@ async def _too_many(scope: Scope, receive: Receive, send: Send, retry: float) ->
     response = JSONResponse({"detail": too_many_detail(retry)}, 429,
                             headers={"Retry-After": str(max(1, math.ceil(retry)))})
     if scope["type"] == "http":
+        response.headers["Connection"] = "close"  # nothing of the body is read (_refuse)
         await response(scope, receive, send)
     elif "websocket.http.response" in scope.get("extensions", {}):
         await WebSocket(scope, receive, send).send_denial_response(response)
