@@ -581,7 +581,7 @@ class DaemonCore:
             if why is None:
                 try:
                     T_B_F, stamp = self._model_frame(self._draft)
-                except StateError as exc:
+                except (StateError, ControlError) as exc:  # no opener pose, or a bad one
                     why = str(exc)
             if why is not None:
                 self._end_guide(now, why)

@@ -29,7 +29,7 @@ import numpy as np
 from oralnav.config.errors import ConfigError
 from oralnav.config.planning import load_planning_scene
 from oralnav.control.errors import ControlError
-from oralnav.control.geometry import as_transform, nearest_rigid
+from oralnav.control.geometry import as_transform
 from oralnav.control.guided_motion import GuidePlan
 from oralnav.control.placement import Placement, place
 from oralnav.control.rod_check import RodCheck
@@ -72,9 +72,9 @@ def check_registration(T_OM_F: Any) -> np.ndarray:
 
 def model_frame(T_B_C: np.ndarray, T_C_OM: np.ndarray, T_OM_F: np.ndarray) -> np.ndarray:
     """``T_B_F`` (4x4, m): the model's Center frame in the robot base. The tracked opener
-    pose's rotation is projected onto the nearest rotation first (the tracker's drift a
-    few 1e-7 from orthonormal)."""
-    return T_B_C @ nearest_rigid(np.asarray(T_C_OM, dtype=float)) @ T_OM_F
+    pose is checked, never repaired: the tracker publishes rigid poses (to about 1e-15),
+    so one that is not rigid is a fault to stop on (``GeometryError``)."""
+    return T_B_C @ as_transform(T_C_OM, what="T_C_OM") @ T_OM_F
 
 
 def fixture_dict(fx: VirtualFixture) -> dict[str, Any]:

@@ -24,7 +24,7 @@ import numpy as np
 
 from oralnav.config.calibration import Calibration
 from oralnav.config.daemon import NAVIGATION_CALIBRATIONS
-from oralnav.control.geometry import invert, nearest_rigid
+from oralnav.control.geometry import invert
 from oralnav.control.navigation import NavCalibration, TwoStageNavigator
 from oralnav.control.tracker import Tracker
 from oralnav.safety.states import SafetyState
@@ -176,8 +176,9 @@ class NavigationTask:
 
         def pose(d: dict, name: str) -> np.ndarray | None:
             e = d.get(name)
-            # the tracker's rotations can sit ~1e-6 off orthonormal; the chains are strict
-            return None if e is None else nearest_rigid(e.T_ref_field)
+            # as tracked: rigid to about 1e-15, and the chains check it (a pose that is not
+            # rigid is a navigation failure that stops the robot, never a guess)
+            return None if e is None else e.T_ref_field
 
         nav = self.navigator
         before = nav.stage

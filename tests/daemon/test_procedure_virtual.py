@@ -6,6 +6,8 @@ deterministically and faster than real time; every target is reached with a TRE 
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -23,6 +25,8 @@ from oralnav.drivers.io.sim import SimInputs
 from oralnav.safety.limits import SpeedLimiter
 from oralnav.safety.watchdogs import WatchdogSet
 from oralnav.sim.cell import SimCell
+
+from .rigid_poses import assert_rigid, observer_client, poll_rigidity
 
 CAMERA_EVERY = 50        # loop periods per camera frame: 10 Hz at 500 Hz
 SUPERVISE_EVERY = 10     # 50 Hz
@@ -94,9 +98,11 @@ async def _start(c: Lockstep) -> None:
     c.core.procedure("start", "test")
 
 
-async def test_whole_procedure_on_the_virtual_clock(cell: Lockstep) -> None:
+async def test_whole_procedure_on_the_virtual_clock(cell: Lockstep, tmp_path: Path) -> None:
     """Approach, intra-oral adjustment and all four targets, with no fault, TRE < 0.1 mm
-    against ground truth, the TCP never faster than the configured speed limit."""
+    against ground truth, the TCP never faster than the configured speed limit. And
+    issue 30: every published pose is rigid to 1e-9: GET /poses after every camera round
+    of the moving robot gives only rigid T (every field, the endoscope's view, the TCP)."""
     await _start(cell)
     speeds = []
 
@@ -104,7 +110,13 @@ async def test_whole_procedure_on_the_virtual_clock(cell: Lockstep) -> None:
         speeds.append(np.linalg.norm(cell.arm.state().tcp_speed[:3]))
         return bool(cell.core.procedure_info.get("done"))
 
-    await cell.run(20 * 500, until=done)  # at most 20 s of virtual time
+    worst: dict[str, float] = {}
+    async with observer_client(cell.core, tmp_path) as api:
+        for _ in range(20 * 500 // CAMERA_EVERY):  # at most 20 s of virtual time
+            await cell.run(CAMERA_EVERY, until=done)
+            await poll_rigidity(api, worst)
+            if cell.core.procedure_info.get("done"):
+                break
     info = cell.core.procedure_info
     assert info.get("done"), (info, cell.core.supervisor.snapshot())
     assert set(info["tre_mm"]) == set(cell.cfg.cell.targets_OM)
@@ -112,6 +124,8 @@ async def test_whole_procedure_on_the_virtual_clock(cell: Lockstep) -> None:
     assert cell.core.supervisor.state.value == "READY"  # the procedure completed
     assert max(speeds) <= cell.cfg.settings.safety.max_speed + 1e-9
     assert cell.clock.now() - 100.0 < 20.0
+    assert {"T_C_RM", "T_C_OM", "T_C_EM", "T_En_EM", "tcp"} <= set(worst), worst
+    assert_rigid(worst)
 
 
 async def test_frozen_camera_stops_the_robot(cell: Lockstep) -> None:
