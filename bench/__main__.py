@@ -6,11 +6,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from . import calibration, control, navigation, needle, needle_tracking, planning, render
+from . import calibration, control, faults, navigation, needle, needle_tracking, planning, render
 
 BENCHES = {"render": render.main, "navigation": navigation.main, "control": control.main,
            "calibration": calibration.main, "planning": planning.main, "needle": needle.main,
-           "needle_tracking": needle_tracking.main}
+           "needle_tracking": needle_tracking.main, "faults": faults.main}
 
 
 def main() -> int:

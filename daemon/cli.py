@@ -14,6 +14,7 @@
     oralnav bench navigation|control|calibration|planning [--quick] --out DIR
     oralnav bench needle [--trials N] [--seed S] [--workers W] [--quick] [--tracking]
                          --out DIR [--json]
+    oralnav bench faults [--quick] --out DIR [--json]
 
 Every ``--json`` prints exactly one JSON object on stdout; progress and logs go to stderr.
 Exit status: 0 done, 2 bad input (the message names the file and key), 1 anything else.
@@ -410,6 +411,16 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_faults(args: argparse.Namespace) -> int:
+    from oralnav.bench import faults
+
+    s = faults.summary(faults.main(Path(args.out), quick=args.quick))
+    _emit(args, s, "fault campaign: " + ", ".join(
+        f"{k} {'met' if v['met'] else 'NOT met' if v['met'] is False else 'undecided'}"
+        for k, v in s["targets"].items()) + f" (details in {s['json']})")
+    return 0
+
+
 class _Parser(argparse.ArgumentParser):
     """An argument parser whose subcommands refuse arguments they do not know themselves.
 
@@ -538,6 +549,15 @@ def build_parser() -> argparse.ArgumentParser:
                          "and where the tracker loses the needle: needle_tracking.json "
                          "(about 15 min; 2 with --quick)")
     nd.set_defaults(func=cmd_bench_needle)
+    fa = bn.add_parser("faults", help="fault campaign on the running daemon: kill -9 of the "
+                                      "daemon and of its control process, SIGSTOP, hostile "
+                                      "bodies, reset cycles, a soak with RSS (about 40 min; "
+                                      "3-6 with --quick)")
+    fa.add_argument("--quick", action="store_true", help="3 kill rounds, 10 reset cycles, "
+                                                         "a 60 s soak")
+    fa.add_argument("--out", required=True, help="folder for faults.json and faults.png")
+    fa.add_argument("--json", action="store_true", help="print the targets as one JSON object")
+    fa.set_defaults(func=cmd_bench_faults)
     return p
 
 
