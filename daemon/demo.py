@@ -87,6 +87,6 @@ def print_result(result: dict[str, Any]) -> None:
     rates = result.get("rates_hz", {})
     print(f"  tracking {rates.get('tracking', 0):.1f} frames/s (stereo pair + endoscope, "
           f"rendered and tracked on this machine); control loop {loop.get('periods', 0)} "
-          f"periods, p99 period error {loop.get('period_error_p99_ms')} ms")
+          f"periods, p99 period error {loop.get('period_error_p99_ms') or 0.0:.3f} ms")
     if not result.get("done"):
         print(f"  stopped because: {result.get('reasons')}")

@@ -19,6 +19,7 @@ daemon unhealthy, so the systemd watchdog is starved and ``GET /health`` says wh
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -38,12 +39,16 @@ class LoopHeartbeat:
     thread-safe, also called by the supervisor's tick."""
 
     def __init__(self, core: Any, *, poll_s: float = POLL_S,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, priority: int = 0) -> None:
+        """``priority``: SCHED_FIFO priority for the watch thread (0: normal scheduling),
+        e.g. one below the control loop's ``[control] realtime_priority``, so that a busy
+        host delays the watch no more than the loop it watches."""
         if not poll_s > 0:
             raise ValueError(f"poll_s must be > 0 s, got {poll_s!r}")
         self.core = core
         self.poll_s = poll_s
         self.clock = clock
+        self.priority = int(priority)
         self._lock = threading.Lock()
         self._beat: int | None = None
         self._silent = False           # the current silence has been latched already
@@ -90,6 +95,14 @@ class LoopHeartbeat:
         self._thread.start()
 
     def _run(self) -> None:
+        if self.priority > 0:
+            try:  # Linux schedules threads by their own id
+                os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO,
+                                      os.sched_param(self.priority))
+                log.info("heartbeat watch at SCHED_FIFO priority %d", self.priority)
+            except (OSError, AttributeError) as exc:
+                log.warning("heartbeat watch: SCHED_FIFO %d refused (%s); normal "
+                            "scheduling", self.priority, exc)
         while not self._stop.wait(self.poll_s):
             try:
                 self.observe(self.clock())

@@ -200,7 +200,12 @@ async def _run(cfg: DaemonConfig, api_port: int | None, api_sock: Any,
         capture = HardwareCapture(core, cfg)  # builds the cameras; they open in the group
     keep_off_control_cpu(s.control.cpu)
     await control.start()
-    heartbeat = LoopHeartbeat(core, clock=core.clock)
+    # a thread that wants the GIL waits up to the switch interval (5 ms by default) for
+    # the holder to let go: at 1 ms the heartbeat watch keeps its few-period promise
+    # whatever Python work the event loop or the tracking threads are doing
+    sys.setswitchinterval(min(sys.getswitchinterval(), 0.001))
+    heartbeat = LoopHeartbeat(core, clock=core.clock,
+                              priority=max(0, s.control.realtime_priority - 1))
     core.heartbeat = heartbeat
     try:
         heartbeat.start()  # a hung loop is seen within a few periods, whatever this loop does
