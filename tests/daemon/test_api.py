@@ -435,8 +435,11 @@ async def test_a_huge_unauthenticated_post_does_not_stall_the_served_loop(rig):
             tg.cancel_scope.cancel()
     print(f"47 MB unauthenticated POST: refused in {refused_s * 1e3:.0f} ms, longest "
           f"/health wait {max(gaps) * 1e3:.0f} ms over {len(gaps)} polls")
-    assert answer.startswith(b"HTTP/1.1 401"), answer[:200]
-    assert b"connection: close" in answer.lower()
+    # the server answers and closes with the body unread: its kernel may reset the
+    # connection before the client reads the answer (then b""); the audit log below
+    # says what the server answered either way
+    assert answer == b"" or answer.startswith(b"HTTP/1.1 401"), answer[:200]
+    assert answer == b"" or b"connection: close" in answer.lower()
     assert refused_s < 1.0
     assert max(gaps) < 0.25, max(gaps)
     assert [x["status"] for x in audit_lines(rig)] == [401]
