@@ -6,7 +6,16 @@ import argparse
 import sys
 from pathlib import Path
 
-from . import calibration, control, faults, navigation, needle, needle_tracking, planning, render
+from oralnav.bench import (
+    calibration,
+    control,
+    faults,
+    navigation,
+    needle,
+    needle_tracking,
+    planning,
+    render,
+)
 
 BENCHES = {"render": render.main, "navigation": navigation.main, "control": control.main,
            "calibration": calibration.main, "planning": planning.main, "needle": needle.main,

@@ -3,11 +3,11 @@ from noisy samples, then eq. 21's TRE at the cell's suture targets.
 
     oralnav bench calibration [--quick] --out DIR      (or: python -m bench calibration)
 
-For every trial, :func:`oralnav.sim.calibration_chain.calibrate_chain` measures every
+For every trial, :func:`oralnav.sim.world.calibration_chain.calibrate_chain` measures every
 sample of the chain (hand-eye, endoscope to opener, pointer pivot, end-effector zero,
 end-effector marker) through the project's pose estimator at one marker-corner noise
-(``sim/measure.py``: exact corners plus Gaussian pixel noise), calibrates in the paper's
-order, and :func:`~oralnav.sim.calibration_chain.chain_tre` registers the targets with the
+(``sim/world/measure.py``: exact corners plus Gaussian pixel noise), calibrates in the paper's
+order, and :func:`~oralnav.sim.world.calibration_chain.chain_tre` registers the targets with the
 pointer and measures where the navigated end-effector really ends up. Trials differ only
 in their noise draws. Two sweeps:
 
@@ -37,7 +37,7 @@ import numpy as np
 from oralnav.config.cell import load_cell_config
 from oralnav.control.errors import CalibrationError
 from oralnav.control.geometry import invert, pose_error
-from oralnav.sim.calibration_chain import (
+from oralnav.sim.world.calibration_chain import (
     POINTER_TIP,
     ChainSimulator,
     MeasurementLost,

@@ -32,7 +32,7 @@ from typing import Any
 import anyio
 import numpy as np
 
-from oralnav.daemon.control_loop import (
+from oralnav.realtime.control_loop import (
     CMD_DTYPE,
     HIST_BIN_S,
     HIST_BINS,
@@ -42,8 +42,8 @@ from oralnav.daemon.control_loop import (
     LoopSettings,
     run_at_rate,
 )
-from oralnav.daemon.control_process import ControlProcess, DriverSpec, ProcessSpec
-from oralnav.daemon.shm import SharedRecord
+from oralnav.realtime.control_process import ControlProcess, DriverSpec, ProcessSpec
+from oralnav.realtime.shm import SharedRecord
 
 P99_TARGET_MS = 1.0
 #: SCHED_FIFO priority of the "process-fifo" runs (what config/sim.toml asks for).
@@ -54,7 +54,7 @@ def _fifo_granted() -> str:
     """Whether this machine grants SCHED_FIFO (the loop falls back to normal otherwise)."""
     import os as _os
 
-    from oralnav.daemon.control_loop import try_realtime
+    from oralnav.realtime.control_loop import try_realtime
     pid = _os.fork()
     if pid == 0:  # try in a throwaway child so this process keeps its scheduling
         _os._exit(0 if try_realtime(RT_PRIORITY).startswith("SCHED_FIFO") else 1)
@@ -84,8 +84,8 @@ class _Tracking:
 
     def __init__(self) -> None:
         from oralnav.bench.navigation import cell_scene, trajectory
-        from oralnav.control.tracker import Tracker
-        from oralnav.sim.render import SceneRenderer
+        from oralnav.control.vision.tracker import Tracker
+        from oralnav.sim.world.render import SceneRenderer
 
         scene = cell_scene()
         renderer = SceneRenderer(scene)
@@ -197,7 +197,7 @@ def run_process_ur(seconds: float, settings: LoopSettings,
     """The process placement with the ``ur`` arm backend: every servo goes through the
     driver's pipe to its ur_rtde child and over RTDE to the fake UR controller (a third
     process, 500 Hz), as on a real cell."""
-    from oralnav.sim.ur_controller import FakeURControllerProcess
+    from oralnav.sim.peers.ur_controller import FakeURControllerProcess
 
     home = [*_home()[:3, 3], 0.0, 0.0, 0.0]  # x y z (m), rotation vector (rad)
     with FakeURControllerProcess(f"127.85.{os.getpid() % 250}.1", home=home) as fake:

@@ -32,20 +32,20 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from oralnav.config.scene import load_scene
-from oralnav.control.detection import detect_fields
 from oralnav.control.geometry import make_transform, pose_error, transform_from_euler
-from oralnav.control.markers import CylinderSurface, MarkerField
-from oralnav.control.metrics import error_summary, jitter_stats
-from oralnav.control.pose import (
+from oralnav.control.navigation.metrics import error_summary, jitter_stats
+from oralnav.control.vision.detection import detect_fields
+from oralnav.control.vision.markers import CylinderSurface, MarkerField
+from oralnav.control.vision.pose import (
     DEFAULT_WEIGHTING,
     WEIGHTINGS,
     Observation,
     corner_normals,
     estimate_pose,
 )
-from oralnav.control.tracker import METHODS, MODES, Tracker
-from oralnav.sim.render import SceneRenderer
-from oralnav.sim.scene import Blot, Scene
+from oralnav.control.vision.tracker import METHODS, MODES, Tracker
+from oralnav.sim.world.render import SceneRenderer
+from oralnav.sim.world.scene import Blot, Scene
 
 #: Camera rate of the simulated sequences (Hz): motion between frames follows from it.
 RATE_HZ = 30.0
@@ -228,7 +228,7 @@ def table_one(frames: int) -> dict[str, Any]:
 
 # -- 3: stability sweeps ------------------------------------------------------------------
 def _single_field_scene(base: Scene, fld: MarkerField, T: np.ndarray, **imaging) -> Scene:
-    from oralnav.sim.scene import Placement
+    from oralnav.sim.world.scene import Placement
 
     return replace(base, placements=(Placement("target", fld, T),),
                    imaging=replace(base.imaging, **imaging), rods=(), blots=())

@@ -5,10 +5,10 @@ simulator's truth, every failure classified by its cause.
     oralnav bench needle --trials N --seed S --out DIR [--json] [--workers W]
     python -m bench needle [--quick]
 
-Each trial is :func:`oralnav.sim.needle_trials.trial_cell` (seed ``S + k``): a stereo
+Each trial is :func:`oralnav.sim.world.needle_trials.trial_cell` (seed ``S + k``): a stereo
 endoscope, a tilted tissue pad with a drawn incision, a threaded CT-1 needle lying at
 random on the pad, two parked grippers on RCM arms, random lighting, blur and noise. The
-procedure is :class:`oralnav.daemon.needle_procedure.NeedleProcedure` with its default
+procedure is :class:`oralnav.control.needle.procedure.NeedleProcedure` with its default
 settings (suture depth 5 mm at the incision's middle); it gets the incision, the tissue
 normal and the pad's outline, as the seed's vision does. A step counts as a success only
 if the procedure saw it succeed and the truth agrees; the steps after a failed one are
@@ -62,7 +62,7 @@ def first_failure(results: Sequence[Any]) -> tuple[dict[str, bool | None], dict 
     """Per step, whether it succeeded by the procedure and the truth (``None``: not
     reached), and the first failure ``{"step", "cause", "detail", "truth"}`` (``None``
     when all succeeded); ``results``: the procedure's :class:`StepResult` list."""
-    from oralnav.daemon.needle_procedure import STEPS
+    from oralnav.control.needle.procedure import STEPS
 
     steps: dict[str, bool | None] = dict.fromkeys(STEPS)
     failure = None
@@ -84,8 +84,8 @@ def first_failure(results: Sequence[Any]) -> tuple[dict[str, bool | None], dict 
 
 def run_trial(seed: int) -> dict[str, Any]:
     """One trial: the procedure on ``trial_cell(seed)``; its record (JSON-able)."""
-    from oralnav.daemon.needle_procedure import NeedleProcedure, port_drives, port_pair
-    from oralnav.sim.needle_trials import CT1, trial_cell
+    from oralnav.control.needle.procedure import NeedleProcedure, port_drives, port_pair
+    from oralnav.sim.world.needle_trials import CT1, trial_cell
 
     t0 = time.perf_counter()
     # the cell is set up for the suture: its ports chosen together with the procedure's
@@ -116,7 +116,7 @@ def classify(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def run(trials: int, seed: int, workers: int | None = None,
         progress: bool = True) -> dict[str, Any]:
     """The Monte Carlo over ``trials`` seeds from ``seed``; the summary document."""
-    from oralnav.daemon.needle_procedure import step_rates
+    from oralnav.control.needle.procedure import step_rates
 
     if trials < 1:
         raise ValueError(f"needle bench: trials must be >= 1, got {trials}")

@@ -3,9 +3,9 @@
     python -m oralnav.bench.needle_tracking [OUT] [--quick]
     (``python -m bench`` and ``oralnav bench`` once wired in)
 
-The tracker is seed 002's (``control/needle_tracker.py``): the particle filter, then the
+The tracker is seed 002's (``control/needle/tracker.py``): the particle filter, then the
 sub-pixel refinement on the wire's centreline, with the suture thread telling base from
-tip. Scenes are the simulator's randomised trial cells (``sim/needle_trials.py``: the
+tip. Scenes are the simulator's randomised trial cells (``sim/world/needle_trials.py``: the
 640 x 480 stereo endoscope, a threaded CT-1 needle on a tilted pad 80-120 mm away, random
 light, blur and noise). Every tracker setting runs on the same rendered frames.
 
@@ -62,17 +62,16 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from oralnav.control.camera import CameraModel
+from oralnav.bench.machine import describe
 from oralnav.control.geometry import invert, make_transform, transform_points
-from oralnav.control.needle import Needle
-from oralnav.control.needle_features import NeedleFeatures, feature_maps
-from oralnav.control.needle_tracker import FilterSettings, NeedleTracker
-from oralnav.sim.needle_cell import ArmReach, CellError, NeedleCell
-from oralnav.sim.needle_trials import TrialInfo, trial_scene
-from oralnav.sim.render import SceneRenderer
-from oralnav.sim.scene import Scene
-
-from .machine import describe
+from oralnav.control.needle.features import NeedleFeatures, feature_maps
+from oralnav.control.needle.model import Needle
+from oralnav.control.needle.tracker import FilterSettings, NeedleTracker
+from oralnav.control.vision.camera import CameraModel
+from oralnav.sim.world.needle_cell import ArmReach, CellError, NeedleCell
+from oralnav.sim.world.needle_trials import TrialInfo, trial_scene
+from oralnav.sim.world.render import SceneRenderer
+from oralnav.sim.world.scene import Scene
 
 PARTICLES = (100, 300, 1000, 3000, 10000)
 #: A converged update this far off is counted as converged yet wrong (mm, deg).

@@ -16,7 +16,7 @@ scan and its Fig. 7a boundary are not public. Five sections:
    MATLAB settings (lambda 20000, alpha 1.0 mm: eq. 7's penalty is at most lambda, so once
    the area passes it the descent may run away; reported as measured), and ours, ``slp``
    (sequential LP, hard constraints) and ``lbfgs`` (smooth depth penalty, analytic
-   gradient). Coverage is :class:`~oralnav.control.fpsm.SliceReport`'s (curve area over the
+   gradient). Coverage is :class:`~oralnav.control.planning.fpsm.SliceReport`'s (curve area over the
    boundary area seen from the slice origin, on 1440 dense rays); also penetrating sampling
    points and the deepest excursion between them. Time: median of repeated fits.
 2. **Full model**: 10 x 10, 15 x 15 and 15 x 20 (slices x points) built from the mesh by
@@ -64,10 +64,11 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize
 
+from oralnav.bench.machine import describe
 from oralnav.config.planning import PlanningScene, load_planning_scene
-from oralnav.control import polar_curve as pc
 from oralnav.control.errors import PlanningError
-from oralnav.control.fpsm import (
+from oralnav.control.planning import polar_curve as pc
+from oralnav.control.planning.fpsm import (
     DENSE_RAYS,
     FPSM,
     FitSettings,
@@ -78,15 +79,13 @@ from oralnav.control.fpsm import (
     report_slices,
     slice_boundaries,
 )
-from oralnav.control.placement import (
+from oralnav.control.planning.placement import (
     PlacementProblem,
     line_safe_distances,
     place,
     uncertified_penalty,
 )
-from oralnav.control.rod_check import RodCheck
-
-from .machine import describe
+from oralnav.control.planning.rod_check import RodCheck
 
 #: The paper's Table 1: N -> (coverage %, seconds per slice); MATLAB R2017b, i5-10200H,
 #: lambda_p = 20000, alpha = 1.0, one boundary (its Fig. 7a).
@@ -303,7 +302,7 @@ def full_model(mesh: Any, quick: bool, out: Path) -> dict[str, Any]:
                  f"{r['penetrating_samples']} penetrating samples, deepest "
                  f"{r['penetration_max_mm']:.3f} mm")
             if (slices, points) == (15, 15) and method in ("slp", "paper"):
-                from oralnav.daemon.plan_figures import slice_fits
+                from oralnav.bench.plan_figures import slice_fits
 
                 dense = slice_boundaries(mesh, model.z, DENSE_RAYS)
                 slice_fits(model, dense, out / f"planning_fpsm_slices_{method}.png",
@@ -640,7 +639,7 @@ def fpsm_vs_mesh(scene: PlanningScene, quick: bool) -> dict[str, Any]:
 
 def _certified_rods(model: FPSM, oracle: _MeshOracle, mesh: Any, n: int,
                     quick: bool) -> dict[str, Any]:
-    """The certified rod check (:mod:`oralnav.control.rod_check`) on the planner's model
+    """The certified rod check (:mod:`oralnav.control.planning.rod_check`) on the planner's model
     (slab envelopes) against fcl: false safes (must be none), false alarms, how far below
     the exact clearance it certifies, and its speed against fcl's, one rod a call and
     batched, on the same rods."""
@@ -750,7 +749,7 @@ def _chart_rods(doc: dict[str, Any], out: Path) -> Path:
 def _constrained(problem: PlacementProblem, check: RodCheck | None
                  ) -> Callable[[np.ndarray], np.ndarray]:
     """The objective the planner minimises: eq. 14 plus, on a certified model, the
-    penalty on lines not certified clear (:func:`~oralnav.control.placement.place`)."""
+    penalty on lines not certified clear (:func:`~oralnav.control.planning.placement.place`)."""
     if check is None:
         return problem.evaluate
     penalty = uncertified_penalty(check, problem)
@@ -840,7 +839,7 @@ def _pso_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def pso(cases: dict[str, PlanningScene], quick: bool, out: Path) -> dict[str, Any]:
-    from oralnav.daemon.plan_figures import objective_contour
+    from oralnav.bench.plan_figures import objective_contour
 
     seeds = range(10 if quick else 20)
     res: dict[str, Any] = {"seeds": len(seeds), "gap_ok": GAP_OK, "cases": {}}

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from oralnav.config.scene import load_scene
-from oralnav.sim.render import SceneRenderer
+from oralnav.sim.world.render import SceneRenderer
 
 SCENE = Path(__file__).resolve().parent.parent / "config" / "examples" / "stereo_cell.toml"
 

@@ -15,7 +15,7 @@ import numpy as np
 from pydantic import Field, ValidationInfo, field_validator
 
 from oralnav.control.geometry import as_transform
-from oralnav.sim.cell import CellConfig, CellError, CellGeometry, SimCell
+from oralnav.sim.world.cell import CellConfig, CellError, CellGeometry, SimCell
 
 from .errors import ConfigError
 from .loader import Float, Strict, build, read_toml, resolve_file, validate

@@ -15,10 +15,10 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
-from oralnav.control.camera import Rig
-from oralnav.control.markers import MarkerField
-from oralnav.sim.cell import CellConfig
-from oralnav.sim.scene import Scene
+from oralnav.control.vision.camera import Rig
+from oralnav.control.vision.markers import MarkerField
+from oralnav.sim.world.cell import CellConfig
+from oralnav.sim.world.scene import Scene
 
 from .calibration import Calibration, load_calibration
 from .cell import CellFile, load_cell_config

@@ -13,7 +13,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from oralnav.control.markers import (
+from oralnav.control.vision.markers import (
     CylinderSurface,
     MarkerField,
     PlaneSurface,

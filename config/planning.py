@@ -21,9 +21,9 @@ from typing import Annotated, Any, Literal
 from pydantic import Field, model_validator
 
 from oralnav.control.errors import PlanningError
-from oralnav.control.fpsm import FPSM, METHODS, BuildReport, FitSettings, build_fpsm
-from oralnav.control.placement import EQUATIONS, Hole, PlacementSettings
-from oralnav.control.pso import PSOSettings
+from oralnav.control.planning.fpsm import FPSM, METHODS, BuildReport, FitSettings, build_fpsm
+from oralnav.control.planning.placement import EQUATIONS, Hole, PlacementSettings
+from oralnav.control.planning.pso import PSOSettings
 
 from .errors import ConfigError
 from .loader import Float, Int, Strict, atomic_write_text, build, read_toml, resolve_file, validate
@@ -56,7 +56,7 @@ class ModelEntry(Strict):
     # placement be certified against the mesh; plane: the paper's plane cuts
     boundary: Literal["envelope", "plane"] = "envelope"
     reach_mm: Annotated[Float, Field(ge=0, le=100)] = 10.0
-    # oral_cavity: the parametric mouth of oralnav.sim.oral_cavity (tests and demos)
+    # oral_cavity: the parametric mouth of oralnav.sim.world.oral_cavity (tests and demos)
     width_mm: Annotated[Float, Field(ge=20, le=300)] = 55.0
     height_mm: Annotated[Float, Field(ge=20, le=300)] = 45.0
     depth_mm: Annotated[Float, Field(ge=20, le=300)] = 90.0
@@ -141,7 +141,8 @@ class PlanningSceneFile(Strict):
 
 @dataclass(frozen=True)
 class PlanningScene:
-    """A loaded placement scene: SI objects ready for :func:`oralnav.control.placement.place`.
+    """A loaded placement scene: SI objects ready for
+    :func:`oralnav.control.planning.placement.place`.
     ``build`` is the fit report when the model was fitted from a mesh at load."""
 
     path: Path
@@ -176,7 +177,7 @@ def load_planning_scene(path: str | Path) -> PlanningScene:
             mesh = load_mesh(target, units=m.units).mesh
             source = str(target)
         else:
-            from oralnav.sim.oral_cavity import oral_cavity_mesh
+            from oralnav.sim.world.oral_cavity import oral_cavity_mesh
 
             mesh = build(path, "model", lambda: oral_cavity_mesh(
                 m.width_mm * 1e-3, m.height_mm * 1e-3, m.depth_mm * 1e-3, teeth=m.teeth,

@@ -12,8 +12,8 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field, field_validator
 
-from oralnav.control.camera import DIST_LENGTHS, CameraModel, Rig
 from oralnav.control.geometry import as_transform
+from oralnav.control.vision.camera import DIST_LENGTHS, CameraModel, Rig
 
 from .loader import Float, Int, Strict, atomic_write_text, build, dump_toml, read_toml, validate
 

@@ -24,10 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from oralnav.control.camera import DIST_LENGTHS, CameraModel
 from oralnav.control.errors import CameraModelError, MarkerFieldError
-from oralnav.control.markers import aruco_dictionary
-from oralnav.control.rigid_body import RigidBody, check_tag_corners
+from oralnav.control.vision.camera import DIST_LENGTHS, CameraModel
+from oralnav.control.vision.markers import aruco_dictionary
+from oralnav.control.vision.rigid_body import RigidBody, check_tag_corners
 
 from .errors import ConfigError
 

@@ -19,9 +19,18 @@ from pydantic import Field, field_validator, model_validator
 
 from oralnav.control.errors import NeedleError
 from oralnav.control.geometry import as_transform, transform_from_euler
-from oralnav.control.needle import Needle
-from oralnav.sim.needle_cell import ArmReach, CellError, NeedleCell
-from oralnav.sim.scene import Blot, Gripper, Imaging, NeedleObject, Placement, Rod, Scene, TissuePad
+from oralnav.control.needle.model import Needle
+from oralnav.sim.world.needle_cell import ArmReach, CellError, NeedleCell
+from oralnav.sim.world.scene import (
+    Blot,
+    Gripper,
+    Imaging,
+    NeedleObject,
+    Placement,
+    Rod,
+    Scene,
+    TissuePad,
+)
 
 from .errors import ConfigError
 from .fields import load_fields
@@ -123,7 +132,7 @@ class _Posed(Strict):
 
 
 class NeedleEntry(_Posed):
-    """A suture needle (frame N of oralnav.control.needle); sizes in mm, the arc in deg."""
+    """A suture needle (frame N of oralnav.control.needle.model); sizes in mm, the arc in deg."""
 
     POSE: ClassVar[str] = "T_ref_needle"
     T_ref_needle: list[list[Float]] | None = None
@@ -185,7 +194,7 @@ class ArmEntry(Strict):
     rcm: Vec3
     min_insertion: Annotated[Float, Field(ge=0, le=2)] = 0.03
     max_insertion: Annotated[Float, Field(gt=0, le=2)] = 0.20
-    # the wrist of the da Vinci Large Needle Driver by default (oralnav.sim.needle_cell)
+    # the wrist of the da Vinci Large Needle Driver by default (oralnav.sim.world.needle_cell)
     max_wrist_pitch_deg: Annotated[Float, Field(gt=0, le=180)] = 80.0
     max_wrist_yaw_deg: Annotated[Float, Field(gt=0, le=180)] = 80.0
     pitch_to_yaw: Annotated[Float, Field(ge=0, le=0.1)] = 0.0091
@@ -233,7 +242,7 @@ def load_arms(path: str | Path) -> dict[str, ArmReach]:
 
 def load_needle_cell(path: str | Path, *, reach: Mapping[str, ArmReach] | None = None,
                      **options) -> NeedleCell:
-    """A :class:`~oralnav.sim.needle_cell.NeedleCell` from a scene file with one needle,
+    """A :class:`~oralnav.sim.world.needle_cell.NeedleCell` from a scene file with one needle,
     one pad, one or two grippers and an ``[arms.<gripper>]`` section for each gripper
     (``reach`` adds to or replaces them by gripper name). ``options`` go to the cell
     (``kinematic_error``, ``grasp_tolerance``...)."""

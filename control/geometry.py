@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .errors import GeometryError
+from oralnav.control.errors import GeometryError
 
 #: Tolerance on ``R^T R - I`` (max abs entry) and on ``det R - 1`` for a proper rotation.
 ROTATION_TOL = 1e-6

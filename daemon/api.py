@@ -50,14 +50,19 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 from oralnav import __version__
 from oralnav.config.daemon import ApiSection
 from oralnav.config.loader import Float
+from oralnav.daemon.api_gate import (
+    COMMAND_METHODS,
+    FailureLimiter,
+    LockoutEvent,
+    RequestGate,
+    count_failure,
+)
+from oralnav.daemon.api_gate import Refused as _Refused
+from oralnav.daemon.api_gate import authorize as _authorize
+from oralnav.daemon.api_gate import bearer_from_header as _bearer_from_header
+from oralnav.daemon.audit import AuditError, AuditLog
+from oralnav.daemon.auth import Principal, Role, TokenStore
 from oralnav.safety.errors import StateError
-
-from .api_gate import COMMAND_METHODS, FailureLimiter, LockoutEvent, RequestGate, count_failure
-from .api_gate import Refused as _Refused
-from .api_gate import authorize as _authorize
-from .api_gate import bearer_from_header as _bearer_from_header
-from .audit import AuditError, AuditLog
-from .auth import Principal, Role, TokenStore
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +167,7 @@ class GuidePlanBody(_Body):
     def _rigid(cls, v: tuple[tuple[float, ...], ...]) -> tuple[tuple[float, ...], ...]:
         # the same check the planning applies (daemon/guidance.py), at the door: a 4x4
         # that is not rigid is refused naming what is wrong before anything is planned
-        from .guidance import GuidePlanError, check_registration
+        from oralnav.daemon.guidance import GuidePlanError, check_registration
 
         try:
             check_registration(v)

@@ -49,7 +49,7 @@ from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from starlette.websockets import WebSocket
 
-from .auth import Principal, Role, TokenStore
+from oralnav.daemon.auth import Principal, Role, TokenStore
 
 if TYPE_CHECKING:
     from oralnav.config.daemon import ApiSection

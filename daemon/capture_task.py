@@ -31,12 +31,11 @@ import anyio.abc
 import anyio.to_thread
 
 from oralnav.config.daemon import DaemonConfig
-from oralnav.control.tracker import Tracker
+from oralnav.control.vision.tracker import Tracker
+from oralnav.daemon.core import DaemonCore
 from oralnav.drivers.camera import Camera, open_camera
 from oralnav.drivers.camera.stereo import StereoCamera
 from oralnav.drivers.errors import DriverError
-
-from .core import DaemonCore
 
 __all__ = ["HardwareCapture"]
 

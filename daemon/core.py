@@ -34,18 +34,17 @@ import numpy as np
 
 from oralnav.control.errors import ControlError
 from oralnav.control.geometry import as_transform, invert
+from oralnav.daemon.api import ProcedureAction, SutureTarget, jsonable
+from oralnav.daemon.guidance import GuideDraft, GuidePlanError, model_frame, plan_insertion
+from oralnav.daemon.needle_session import NeedleSession
+from oralnav.realtime.control_loop import HIST_BIN_S
+from oralnav.realtime.control_process import ControlPort
+from oralnav.realtime.plan_channel import ChannelError
+from oralnav.realtime.shm import decode_reason
 from oralnav.safety.errors import StateError
 from oralnav.safety.states import LATCHED, SafetyState, SafetySupervisor
 from oralnav.safety.stop import LatchedStop
 from oralnav.safety.watchdogs import WatchdogSet
-
-from .api import ProcedureAction, SutureTarget, jsonable
-from .control_loop import HIST_BIN_S
-from .control_process import ControlPort
-from .guidance import GuideDraft, GuidePlanError, model_frame, plan_insertion
-from .needle_session import NeedleSession
-from .plan_channel import ChannelError
-from .shm import decode_reason
 
 log = logging.getLogger(__name__)
 

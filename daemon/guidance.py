@@ -30,10 +30,10 @@ from oralnav.config.errors import ConfigError
 from oralnav.config.planning import load_planning_scene
 from oralnav.control.errors import ControlError
 from oralnav.control.geometry import as_transform
-from oralnav.control.guided_motion import GuidePlan
-from oralnav.control.placement import Placement, place
-from oralnav.control.rod_check import RodCheck
-from oralnav.control.virtual_fixture import VirtualFixture
+from oralnav.control.guidance.guided_motion import GuidePlan
+from oralnav.control.guidance.virtual_fixture import VirtualFixture
+from oralnav.control.planning.placement import Placement, place
+from oralnav.control.planning.rod_check import RodCheck
 from oralnav.safety.errors import StateError
 
 #: The farthest the model's Center frame may sit from the opener marker's origin (m): a

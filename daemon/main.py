@@ -41,8 +41,8 @@ def check_start_files(cfg: DaemonConfig) -> None:
     without a tokens file, ``$RUNTIME_DIRECTORY`` for the demo tokens. Raises
     :class:`ConfigError` naming the configuration file and key, or the tokens file and key.
     """
-    from .audit import resolve_audit_path
-    from .auth import TokenStore
+    from oralnav.daemon.audit import resolve_audit_path
+    from oralnav.daemon.auth import TokenStore
 
     api = cfg.settings.api
     if api.tokens_file:
@@ -102,8 +102,8 @@ def run(argv: Sequence[str] | None = None) -> int:
             return 2
         import anyio
 
-        from .demo import play_operator, print_result
-        from .service import run_service
+        from oralnav.daemon.demo import play_operator, print_result
+        from oralnav.daemon.service import run_service
         logging.basicConfig(level=logging.WARNING, format="oralnavd: %(name)s: %(message)s")
         result: dict[str, Any] = {}
         t0 = time.perf_counter()
@@ -130,8 +130,8 @@ def run(argv: Sequence[str] | None = None) -> int:
         return 0
     import anyio
 
-    from .audit import AuditError
-    from .service import run_service
+    from oralnav.daemon.audit import AuditError
+    from oralnav.daemon.service import run_service
     logging.basicConfig(level=logging.INFO, format="oralnavd: %(name)s: %(message)s")
     try:
         return anyio.run(run_service, cfg, args.api_port)

@@ -4,7 +4,7 @@ Each round reads one synchronised set of frames (stereo pair and endoscope), tra
 fields in a worker thread (stereo: robot, effector, opener; endoscope: effector), reports
 the poses and frame counters to the core (watchdogs, /poses), and, while the procedure
 runs, turns them into the control loop's goal through the two-stage navigator
-(``control/navigation.py``). On the simulated cell it also measures what the robot reached
+(``control/navigation/navigator.py``). On the simulated cell it also measures what the robot reached
 against ground truth: each suture target's TRE (eq. 21: the distance between where the
 end-effector truly is and where the target truly is, when the navigator says "reached").
 """
@@ -25,12 +25,11 @@ import numpy as np
 from oralnav.config.calibration import Calibration
 from oralnav.config.daemon import NAVIGATION_CALIBRATIONS
 from oralnav.control.geometry import invert
-from oralnav.control.navigation import NavCalibration, TwoStageNavigator
-from oralnav.control.tracker import Tracker
+from oralnav.control.navigation.navigator import NavCalibration, TwoStageNavigator
+from oralnav.control.vision.tracker import Tracker
+from oralnav.daemon.core import DaemonCore
 from oralnav.safety.states import SafetyState
-from oralnav.sim.cell import SimCell
-
-from .core import DaemonCore
+from oralnav.sim.world.cell import SimCell
 
 log = logging.getLogger(__name__)
 

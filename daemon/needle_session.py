@@ -18,9 +18,13 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+from oralnav.control.needle.procedure import (
+    NeedleProcedure,
+    ProcedureSettings,
+    port_drives,
+    port_pair,
+)
 from oralnav.safety.errors import StateError
-
-from .needle_procedure import NeedleProcedure, ProcedureSettings, port_drives, port_pair
 
 log = logging.getLogger(__name__)
 
@@ -41,7 +45,7 @@ class NeedleSession:
     def load_trial(self, trial: int, difficulty: float, who: str) -> dict[str, Any]:
         """Replace the cell by simulated trial ``trial`` (a fresh procedure at NG). A bad
         seed or difficulty is the trial's ``CellError`` (a ValueError: 422)."""
-        from oralnav.sim.needle_trials import CT1, trial_cell
+        from oralnav.sim.world.needle_trials import CT1, trial_cell
 
         if not self._lock.acquire(blocking=False):
             raise StateError(f"cannot load a cell while needle step {self._busy} runs")

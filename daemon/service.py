@@ -36,18 +36,17 @@ import numpy as np
 from oralnav.config.daemon import DaemonConfig
 from oralnav.config.errors import ConfigError
 from oralnav.config.loader import resolve_file
+from oralnav.daemon.api import bind_api, build_app, serve
+from oralnav.daemon.api_gate import AuthLimits, FailureLimiter
+from oralnav.daemon.audit import AuditLog
+from oralnav.daemon.auth import TokenStore
+from oralnav.daemon.core import DaemonCore
+from oralnav.daemon.heartbeat import LoopHeartbeat
 from oralnav.drivers.io import open_inputs
+from oralnav.realtime.control_loop import LoopSettings
+from oralnav.realtime.control_process import ControlProcess, DriverSpec, ProcessSpec
 from oralnav.safety.limits import SpeedLimiter
 from oralnav.safety.watchdogs import WatchdogSet
-
-from .api import bind_api, build_app, serve
-from .api_gate import AuthLimits, FailureLimiter
-from .audit import AuditLog
-from .auth import TokenStore
-from .control_loop import LoopSettings
-from .control_process import ControlProcess, DriverSpec, ProcessSpec
-from .core import DaemonCore
-from .heartbeat import LoopHeartbeat
 
 log = logging.getLogger(__name__)
 
@@ -160,8 +159,8 @@ async def _run(cfg: DaemonConfig, api_port: int | None, api_sock: Any,
                tls: tuple[str, str] | None, cleanup: list[Callable[[], None]],
                on_ready: Callable[..., Any] | None) -> int:
     """:func:`run_service` once the API's socket is bound."""
-    from .navigation_task import ArmProbe, NavigationTask, nav_calibration
-    from .systemd import Notifier, watchdog_task
+    from oralnav.daemon.navigation_task import ArmProbe, NavigationTask, nav_calibration
+    from oralnav.daemon.systemd import Notifier, watchdog_task
 
     s = cfg.settings
     tokens, clear = load_tokens(cfg, cleanup)
@@ -177,7 +176,7 @@ async def _run(cfg: DaemonConfig, api_port: int | None, api_sock: Any,
     nav = None
     if cfg.cell is not None:
         from oralnav.drivers.camera.sim import SimCameraSet
-        from oralnav.sim.cell import SimCell
+        from oralnav.sim.world.cell import SimCell
 
         probe = ArmProbe(core, cfg.cell.home_T_B_tcp)
         cell = SimCell(cfg.cell, probe, probe.wrist, core.clock)
@@ -195,7 +194,7 @@ async def _run(cfg: DaemonConfig, api_port: int | None, api_sock: Any,
         core.set_hand_eye(nav.calibration.T_B_C)
     capture = None
     if cfg.cell is None and s.cameras:
-        from .capture_task import HardwareCapture
+        from oralnav.daemon.capture_task import HardwareCapture
 
         capture = HardwareCapture(core, cfg)  # builds the cameras; they open in the group
     keep_off_control_cpu(s.control.cpu)

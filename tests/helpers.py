@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 import pytest
 
-from oralnav.control.camera import CameraModel
-from oralnav.control.rigid_body import RigidBody
+from oralnav.control.vision.camera import CameraModel
+from oralnav.control.vision.rigid_body import RigidBody
 
 ROOT = Path(__file__).resolve().parents[1]
 PEER_DATA = ROOT.parent / "shared" / "peer-data"
@@ -131,7 +131,7 @@ def render_tags(camera: CameraModel, body: RigidBody, T_cam_body: np.ndarray, *,
 #: than its deadlines (REST flows, stop and reset): the test machine is shared and not
 #: real-time, and a normal-priority child there was seen 16-57 ms late under load, which
 #: the product's 10 ms limit rightly turns into a stop. The deadline watchdog itself is
-#: tested on a virtual clock (tests/daemon/test_control_loop.py, tests/safety).
+#: tested on a virtual clock (tests/realtime/test_control_loop.py, tests/safety).
 LOADED_MACHINE = {"max_period_lateness": 0.5, "deadline_misses": 1000}
 
 

@@ -386,7 +386,7 @@ class SimArm(Arm):
 
     def apply_wrench(self, wrench: np.ndarray) -> None:
         """Set what the simulated TCP force sensor reads (base frame, N and N m): the
-        operator's push, e.g. from :class:`oralnav.sim.hand.ScriptedHand`. It does not
+        operator's push, e.g. from :class:`oralnav.sim.world.hand.ScriptedHand`. It does not
         move the arm by itself; the admittance controller turns it into motion."""
         w = np.asarray(wrench, dtype=float).reshape(-1)
         if w.size == 3:

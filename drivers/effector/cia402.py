@@ -5,7 +5,7 @@ tables), and the EMCY codes it names.
 
 A real drive comes with its vendor's EDS file, which holds these objects and many more; pass
 it as ``eds`` to the backend. :func:`minimal_od` is the subset for drives without one at hand
-and for the emulated drive (``oralnav.sim.cia402_drive``).
+and for the emulated drive (``oralnav.sim.peers.cia402_drive``).
 """
 
 from __future__ import annotations

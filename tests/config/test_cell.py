@@ -1,6 +1,6 @@
 """Tests of ``oralnav.config.cell``: the cell file of the simulated surgical cell.
 
-Only loading is tested here (no image is rendered; tests/sim/test_cell.py renders). Each
+Only loading is tested here (no image is rendered; tests/sim/world/test_cell.py renders). Each
 test's docstring names the requirement it checks (issue 4 sim cell: the cell file).
 """
 
@@ -16,9 +16,8 @@ import pytest
 from oralnav.config.cell import load_cell_config, load_sim_cell
 from oralnav.config.errors import ConfigError
 from oralnav.config.scene import load_scene
-from oralnav.sim.cell import CellConfig, CellGeometry, SimCell
-
-from .helpers import edit, expect_config_error, write_file
+from oralnav.sim.world.cell import CellConfig, CellGeometry, SimCell
+from tests.config.helpers import edit, expect_config_error, write_file
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "config" / "examples"
 CELL = EXAMPLES / "sim_cell.toml"

@@ -18,8 +18,7 @@ from oralnav.config.daemon import (
     load_config,
 )
 from oralnav.config.errors import ConfigError
-
-from .helpers import edit, expect_config_error, write_file
+from tests.config.helpers import edit, expect_config_error, write_file
 
 CONFIG = Path(__file__).resolve().parents[2] / "config"
 SIM = CONFIG / "sim.toml"

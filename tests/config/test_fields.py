@@ -13,9 +13,8 @@ import pytest
 
 from oralnav.config.errors import ConfigError
 from oralnav.config.fields import load_fields
-from oralnav.control.markers import CylinderSurface, PlaneSurface, PointsSurface
-
-from .helpers import edit, expect_config_error, write_file
+from oralnav.control.vision.markers import CylinderSurface, PlaneSurface, PointsSurface
+from tests.config.helpers import edit, expect_config_error, write_file
 
 CONFIG = Path(__file__).resolve().parents[2] / "config"
 CELL = CONFIG / "fields" / "cell.toml"

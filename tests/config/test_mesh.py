@@ -19,7 +19,7 @@ from oralnav.config.mesh import (
     load_mesh,
     save_mesh,
 )
-from oralnav.sim.oral_cavity import oral_cavity_mesh
+from oralnav.sim.world.oral_cavity import oral_cavity_mesh
 
 
 @pytest.fixture(scope="module")

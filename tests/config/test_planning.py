@@ -13,8 +13,8 @@ import pytest
 from oralnav.config.errors import ConfigError
 from oralnav.config.mesh import save_mesh
 from oralnav.config.planning import load_fpsm, load_planning_scene, save_fpsm
-from oralnav.control.fpsm import FPSM
-from oralnav.sim.oral_cavity import oral_cavity_mesh
+from oralnav.control.planning.fpsm import FPSM
+from oralnav.sim.world.oral_cavity import oral_cavity_mesh
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "config" / "examples"
 CASES = sorted(EXAMPLES.glob("*_case.toml"))

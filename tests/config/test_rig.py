@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from oralnav.config.errors import ConfigError
 from oralnav.config.rig import load_rig, save_rig
-from oralnav.control.camera import CameraModel, Rig
+from oralnav.control.vision.camera import CameraModel, Rig
 
 CONFIG = Path(__file__).resolve().parents[2] / "config"
 STEREO = CONFIG / "rigs" / "stereo.toml"

@@ -14,8 +14,7 @@ import pytest
 from oralnav.config.errors import ConfigError
 from oralnav.config.rigid_bodies import load_calibration_txt, load_rigid_body
 from oralnav.control.errors import MarkerFieldError
-
-from .helpers import edit, expect_config_error, write_file
+from tests.config.helpers import edit, expect_config_error, write_file
 
 # Two rows of the peer's reference.txt (tabs) and one written with spaces.
 TABLE = (

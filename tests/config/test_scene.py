@@ -15,9 +15,8 @@ from scipy.spatial.transform import Rotation
 
 from oralnav.config.errors import ConfigError
 from oralnav.config.scene import load_arms, load_needle_cell, load_scene
-from oralnav.sim.scene import Scene
-
-from .helpers import edit, expect_config_error, write_file
+from oralnav.sim.world.scene import Scene
+from tests.config.helpers import edit, expect_config_error, write_file
 
 CONFIG = Path(__file__).resolve().parents[2] / "config"
 # every example is a scene file except the cell file, which names two of them, and the
@@ -416,7 +415,7 @@ def test_needle_cell_needs_its_objects_and_arms(tmp_path):
     """Item 4 (building a cell from TOML): a file without an [arms.*] section for a
     gripper, with two needles, or whose gripper starts out of its arm's reach gives one
     ConfigError naming the file and the section; reach= can supply the missing arm."""
-    from oralnav.sim.needle_cell import ArmReach
+    from oralnav.sim.world.needle_cell import ArmReach
 
     load = partial(expect_config_error, load_needle_cell)
     path = _write(tmp_path, "no_arm.toml", NEEDLE_GOOD)

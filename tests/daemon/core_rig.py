@@ -10,13 +10,12 @@ import anyio
 import numpy as np
 
 from oralnav.config.daemon import load_config
-from oralnav.daemon.control_loop import LoopSettings
-from oralnav.daemon.control_process import ControlProcess, DriverSpec, ProcessSpec
 from oralnav.daemon.core import DaemonCore
+from oralnav.realtime.control_loop import LoopSettings
+from oralnav.realtime.control_process import ControlProcess, DriverSpec, ProcessSpec
 from oralnav.safety.limits import SpeedLimiter
 from oralnav.safety.watchdogs import WatchdogSet
-
-from ..helpers import LOADED_MACHINE
+from tests.helpers import LOADED_MACHINE
 
 
 def home_pose() -> np.ndarray:

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from oralnav.control.virtual_fixture import VirtualFixture
-from oralnav.sim.hand import ScriptedHand
+from oralnav.control.guidance.virtual_fixture import VirtualFixture
+from oralnav.sim.world.hand import ScriptedHand
 
 #: The paper's cylinder case (a 1.9 MB plan with its rod check; about 2 s to plan).
 CYLINDER = Path(str(resources.files("oralnav.config").joinpath(
@@ -79,7 +79,7 @@ def start_pose(T_F_tool: np.ndarray, fx: VirtualFixture, out: float = 0.02) -> n
 
 @dataclass
 class BaseFrameHand:
-    """The scripted hand of :mod:`oralnav.sim.hand` as a sim-arm ``force_source``: its
+    """The scripted hand of :mod:`oralnav.sim.world.hand` as a sim-arm ``force_source``: its
     force (frame ``F``) at the measured TCP, turned into the base frame. Its script
     starts at the first call. Picklable, so it reaches the control process."""
 

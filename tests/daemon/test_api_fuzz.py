@@ -29,8 +29,7 @@ from oralnav.daemon.api import build_app
 from oralnav.daemon.audit import AuditLog
 from oralnav.daemon.auth import TokenStore
 from oralnav.drivers.io.sim import SimInputs
-
-from .core_rig import control_process, daemon_core
+from tests.daemon.core_rig import control_process, daemon_core
 
 #: examples per operation (16 operations), valid and invalid
 EXAMPLES = 15

@@ -25,8 +25,7 @@ from oralnav.daemon.api_gate import (
 )
 from oralnav.daemon.audit import AuditLog
 from oralnav.daemon.auth import TokenStore
-
-from .test_api import FakeOps
+from tests.daemon.test_api import FakeOps
 
 LIMITS = AuthLimits(burst=5, refill_s=10.0, lockout_s=60.0, lockout_max_s=300.0,
                     memory_s=1000.0, summary_s=30.0, max_clients=100)

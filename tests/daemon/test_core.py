@@ -18,8 +18,7 @@ from oralnav.daemon.api import build_app
 from oralnav.daemon.audit import AuditLog
 from oralnav.daemon.auth import TokenStore
 from oralnav.drivers.io.sim import SimInputs
-
-from .core_rig import control_process, daemon_core, home_pose, supervise_until
+from tests.daemon.core_rig import control_process, daemon_core, home_pose, supervise_until
 
 _home = home_pose
 

@@ -11,12 +11,11 @@ import logging
 
 import pytest
 
-from oralnav.daemon.control_process import DriverSpec
 from oralnav.drivers.io.sim import SimInputs
+from oralnav.realtime.control_process import DriverSpec
 from oralnav.safety.errors import StateError
-from oralnav.sim.modbus_drive import ModbusDriveServer
-
-from .core_rig import control_process, daemon_core, supervise_until
+from oralnav.sim.peers.modbus_drive import ModbusDriveServer
+from tests.daemon.core_rig import control_process, daemon_core, supervise_until
 
 WAIT = 5.0  # s: the drive's fault reset goes over Modbus from another process
 

@@ -17,18 +17,17 @@ import pytest
 
 from oralnav.config.daemon import load_config
 from oralnav.daemon.api import SutureTarget
-from oralnav.daemon.control_loop import GUIDE, HOLD, LoopSettings
-from oralnav.daemon.control_process import InProcessControl
 from oralnav.daemon.core import GUIDE_POSE, DaemonCore
 from oralnav.daemon.guidance import GuidePlanError, NoSafePlacement, plan_insertion
 from oralnav.drivers.arm.sim import SimArm
 from oralnav.drivers.clock import VirtualClock
+from oralnav.realtime.control_loop import GUIDE, HOLD, LoopSettings
+from oralnav.realtime.control_process import InProcessControl
 from oralnav.safety.errors import StateError
 from oralnav.safety.limits import SpeedLimiter
 from oralnav.safety.watchdogs import WatchdogSet
-from oralnav.sim.hand import ScriptedHand
-
-from .guide_cell import (
+from oralnav.sim.world.hand import ScriptedHand
+from tests.daemon.guide_cell import (
     SMALL_SCENE,
     T_B_C,
     T_B_F,

@@ -22,16 +22,23 @@ from oralnav.config.daemon import load_config
 from oralnav.daemon.api import build_app
 from oralnav.daemon.audit import AuditLog
 from oralnav.daemon.auth import TokenStore
-from oralnav.daemon.control_loop import LoopSettings
-from oralnav.daemon.control_process import ControlProcess, DriverSpec, ProcessSpec
 from oralnav.daemon.core import GUIDE_POSE, DaemonCore
 from oralnav.daemon.guidance import plan_insertion
 from oralnav.drivers.io.sim import SimInputs
+from oralnav.realtime.control_loop import LoopSettings
+from oralnav.realtime.control_process import ControlProcess, DriverSpec, ProcessSpec
 from oralnav.safety.limits import SpeedLimiter
 from oralnav.safety.watchdogs import WatchdogSet
-from oralnav.sim.hand import ScriptedHand
-
-from .guide_cell import T_B_C, T_B_F, T_C_OM, T_OM_F, BaseFrameHand, small_scene, start_pose
+from oralnav.sim.world.hand import ScriptedHand
+from tests.daemon.guide_cell import (
+    T_B_C,
+    T_B_F,
+    T_C_OM,
+    T_OM_F,
+    BaseFrameHand,
+    small_scene,
+    start_pose,
+)
 
 SEED = 7
 STALE_POSE = 0.2   # s, the loop's limit in these tests (the daemon's, from sim.toml, is 1 s)

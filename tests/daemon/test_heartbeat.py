@@ -13,12 +13,11 @@ import time
 import anyio
 import pytest
 
-from oralnav.daemon.control_loop import HOLD
 from oralnav.daemon.heartbeat import LoopHeartbeat
 from oralnav.daemon.systemd import _ask
 from oralnav.drivers.io.sim import SimInputs
-
-from .core_rig import control_process, daemon_core, supervise_until
+from oralnav.realtime.control_loop import HOLD
+from tests.daemon.core_rig import control_process, daemon_core, supervise_until
 
 #: how late past its limit the watch may latch on a loaded 2-core CI machine (s)
 SLACK_S = 0.05

@@ -13,8 +13,6 @@ import pytest
 
 from oralnav.config.daemon import load_config
 from oralnav.daemon.api import SutureTarget
-from oralnav.daemon.control_loop import LoopSettings
-from oralnav.daemon.control_process import InProcessControl
 from oralnav.daemon.core import DaemonCore
 from oralnav.daemon.navigation_task import ArmProbe, NavigationTask
 from oralnav.drivers.arm.sim import SimArm
@@ -22,11 +20,12 @@ from oralnav.drivers.camera.sim import SimCameraSet
 from oralnav.drivers.clock import VirtualClock
 from oralnav.drivers.effector.sim import SimEffector
 from oralnav.drivers.io.sim import SimInputs
+from oralnav.realtime.control_loop import LoopSettings
+from oralnav.realtime.control_process import InProcessControl
 from oralnav.safety.limits import SpeedLimiter
 from oralnav.safety.watchdogs import WatchdogSet
-from oralnav.sim.cell import SimCell
-
-from .rigid_poses import assert_rigid, observer_client, poll_rigidity
+from oralnav.sim.world.cell import SimCell
+from tests.daemon.rigid_poses import assert_rigid, observer_client, poll_rigidity
 
 CAMERA_EVERY = 50        # loop periods per camera frame: 10 Hz at 500 Hz
 SUPERVISE_EVERY = 10     # 50 Hz

@@ -13,9 +13,8 @@ import pytest
 from oralnav.daemon.core import DaemonCore
 from oralnav.drivers.io import open_inputs
 from oralnav.safety.errors import StateError
-from oralnav.sim.serial_box import SerialBox
-
-from .core_rig import control_process, daemon_core, supervise_until
+from oralnav.sim.peers.serial_box import SerialBox
+from tests.daemon.core_rig import control_process, daemon_core, supervise_until
 
 
 @pytest.fixture

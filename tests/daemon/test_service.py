@@ -169,7 +169,7 @@ def test_main_job_visits_every_target(tmp_path: Path) -> None:
 def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:
     """Issue 8 (done when: the daemon runs with the fake devices in place of the simulated
     ones): oralnavd on the [cell] backend = "hardware" configuration that
-    oralnav.daemon.peers writes for its peers drives the UR arm through ur_rtde against the
+    oralnav.cli.peers writes for its peers drives the UR arm through ur_rtde against the
     fake UR controller, the wrist over Modbus TCP against the emulated
     drive unit, reads the serial e-stop box and the stereo pair from two simulated GigE
     cameras through Aravis; /status shows them connected, stereo pairs tracked and the cell
@@ -178,7 +178,7 @@ def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:
     cleanly."""
     import logging
 
-    from oralnav.daemon.peers import HardwarePeers
+    from oralnav.cli.peers import HardwarePeers
 
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     with HardwarePeers(tmp_path, ur_host=f"127.84.{os.getpid() % 250}.1",
@@ -224,13 +224,17 @@ def test_an_unreachable_arm_and_camera_fault_the_cell_and_recover(tmp_path: Path
     controller address did not answer); once the controller and
     the cameras appear, the arm connects and pairs are tracked, and an operator reset
     brings the cell to READY."""
-    from oralnav.sim.ur_controller import FakeURControllerProcess
+    from oralnav.sim.peers.ur_controller import FakeURControllerProcess
 
     ur_host = f"127.84.{os.getpid() % 250}.2"
     with contextlib.ExitStack() as stack:
         cams, addresses = "", []
         if ARAVIS_MISSING is None:
-            from oralnav.sim.gige_fake import FakeGvCamera, NoLoopbackAddress, loopback_address
+            from oralnav.sim.peers.gige_fake import (
+                FakeGvCamera,
+                NoLoopbackAddress,
+                loopback_address,
+            )
 
             try:  # two cameras need two loopback addresses (aliases: root and iproute2)
                 addresses = [stack.enter_context(loopback_address()) for _ in range(2)]

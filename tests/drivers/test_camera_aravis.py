@@ -9,7 +9,7 @@ without root only ``127.0.0.1`` is used, so tests needing two cameras are skippe
 
 The tests are skipped, with the reason, only where PyGObject's Aravis 0.8 or the fake camera
 are missing; ``./dev.sh test`` installs both (as root), so CI runs them. The helpers here
-(``oralnav.sim.gige_fake``: :func:`running_fakes`, :class:`FakeGvCamera`) also serve the
+(``oralnav.sim.peers.gige_fake``: :func:`running_fakes`, :class:`FakeGvCamera`) also serve the
 stereo and contract suites and the daemon's hardware-cell test.
 """
 
@@ -26,8 +26,8 @@ import pytest
 
 from oralnav.drivers.camera import camera_class, open_camera
 from oralnav.drivers.errors import DriverError, DriverInitError, DriverIOError, DriverTimeoutError
-from oralnav.sim.gige_fake import FAKE, FakeGvCamera, NoLoopbackAddress
-from oralnav.sim.gige_fake import running_fakes as fakes_on_loopback
+from oralnav.sim.peers.gige_fake import FAKE, FakeGvCamera, NoLoopbackAddress
+from oralnav.sim.peers.gige_fake import running_fakes as fakes_on_loopback
 
 
 def _gi_missing() -> str | None:
@@ -62,12 +62,12 @@ if GI_MISSING is None:
 
 
 # -- fake cameras -------------------------------------------------------------------------
-# (oralnav.sim.gige_fake: the fake camera process and its loopback address)
+# (oralnav.sim.peers.gige_fake: the fake camera process and its loopback address)
 
 
 @contextlib.contextmanager
 def running_fakes() -> Iterator[Callable[..., FakeGvCamera]]:
-    """:func:`oralnav.sim.gige_fake.running_fakes`, skipping the test where no loopback
+    """:func:`oralnav.sim.peers.gige_fake.running_fakes`, skipping the test where no loopback
     address can be had for one more fake (not root, 127.0.0.1 taken)."""
     with fakes_on_loopback() as make:
         def make_or_skip(lost_ratio: int = 0) -> FakeGvCamera:

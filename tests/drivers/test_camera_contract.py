@@ -25,8 +25,7 @@ import pytest
 from oralnav.drivers.camera import Camera, camera_class, open_camera
 from oralnav.drivers.camera.v4l2 import diagnose_device, video_devices
 from oralnav.drivers.errors import DriverError, DriverInitError, DriverIOError
-
-from .test_camera_aravis import ARAVIS_MISSING, running_fakes
+from tests.drivers.test_camera_aravis import ARAVIS_MISSING, running_fakes
 
 W, H = 32, 24
 

@@ -22,7 +22,7 @@ from oralnav.drivers.effector.canopen_drive import CanopenDriveEffector
 from oralnav.drivers.effector.cia402 import minimal_od, state_of
 from oralnav.drivers.effector.kinematics import WristKinematics
 from oralnav.drivers.errors import DriverInitError, DriverIOError
-from oralnav.sim.cia402_drive import EmulatedCia402Drives
+from oralnav.sim.peers.cia402_drive import EmulatedCia402Drives
 
 WAIT = 3.0
 CPR = 4096 / (2 * np.pi)

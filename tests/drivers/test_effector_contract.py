@@ -21,8 +21,8 @@ import pytest
 
 from oralnav.drivers.effector import EffectorCommandError, EndEffector, open_effector
 from oralnav.drivers.errors import DriverIOError
-from oralnav.sim.cia402_drive import EmulatedCia402Drives
-from oralnav.sim.modbus_drive import ModbusDriveServer
+from oralnav.sim.peers.cia402_drive import EmulatedCia402Drives
+from oralnav.sim.peers.modbus_drive import ModbusDriveServer
 
 WAIT = 3.0
 

@@ -23,8 +23,8 @@ from oralnav.drivers.effector.modbus_drive import (
     encode_int32,
 )
 from oralnav.drivers.errors import DriverInitError, DriverIOError
-from oralnav.sim.modbus_drive import HOST_WATCHDOG_ERROR, ModbusDriveServer
-from oralnav.sim.null_modem import NullModem
+from oralnav.sim.peers.modbus_drive import HOST_WATCHDOG_ERROR, ModbusDriveServer
+from oralnav.sim.peers.null_modem import NullModem
 
 WAIT = 3.0
 CPR = 4096 / (2 * math.pi)  # counts per motor rad (a 12-bit encoder)

@@ -13,7 +13,7 @@ import anyio
 import pytest
 
 from oralnav.drivers.io import SafetyInputs, open_inputs
-from oralnav.sim.serial_box import SerialBox
+from oralnav.sim.peers.serial_box import SerialBox
 
 WAIT = 3.0
 

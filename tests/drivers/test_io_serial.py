@@ -1,5 +1,5 @@
 """Issue 8, serial I/O: the e-stop and foot pedal read from a serial box through pyserial,
-tested through a real pty pair against the simulated box (``oralnav.sim.serial_box``). A
+tested through a real pty pair against the simulated box (``oralnav.sim.peers.serial_box``). A
 silent line, garbage, a stuck sequence number and an unplugged box are each a named fault
 that reads the e-stop pressed; the input recovers by itself when the box speaks again."""
 
@@ -15,7 +15,7 @@ import pytest
 from oralnav.drivers.errors import DriverInitError
 from oralnav.drivers.io import inputs_class, open_inputs
 from oralnav.drivers.io.serial_link import MAX_LINE, SerialInputs, encode_line, parse_line
-from oralnav.sim.serial_box import SerialBox
+from oralnav.sim.peers.serial_box import SerialBox
 
 #: generous: the suite runs on a loaded 2-core machine
 WAIT = 3.0

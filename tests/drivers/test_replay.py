@@ -31,9 +31,8 @@ from oralnav.drivers.errors import (
     DriverTimeoutError,
     EndOfStream,
 )
-
-from ..helpers import ARUCO_DATA as ARUCO
-from ..helpers import needs_aruco_data
+from tests.helpers import ARUCO_DATA as ARUCO
+from tests.helpers import needs_aruco_data
 
 #: name -> (decodable frames, frames per second in the file)
 PEER_VIDEOS = {"output.avi": (10, 10.0), "multipattern.avi": (10, 30.0), "12markers.avi": (1, 30.0)}

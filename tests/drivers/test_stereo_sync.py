@@ -20,8 +20,7 @@ from oralnav.drivers.camera.base import CameraFrame
 from oralnav.drivers.camera.replay import ReplayCamera
 from oralnav.drivers.camera.stereo import FramePairer, StereoCamera, trigger_counter
 from oralnav.drivers.errors import DriverInitError, DriverIOError
-
-from .test_camera_aravis import ARAVIS_MISSING, running_fakes
+from tests.drivers.test_camera_aravis import ARAVIS_MISSING, running_fakes
 
 IMAGE = np.zeros((2, 2), np.uint8)
 

@@ -14,15 +14,14 @@ import pytest
 
 from oralnav.config.rigid_bodies import load_calibration_txt, load_rigid_body
 from oralnav.control.geometry import pose_error
-from oralnav.control.rigid_body import (
+from oralnav.control.vision.rigid_body import (
     T_TAG_OPENCV_MARKER,
     detect_tags,
     estimate_body_pose,
     single_tag_body,
 )
-
-from ..helpers import ARUCO_DATA as ARUCO
-from ..helpers import PEER_REFERENCE_MM, PEER_TAG0_MM, mm_to_m, needs_aruco_data
+from tests.helpers import ARUCO_DATA as ARUCO
+from tests.helpers import PEER_REFERENCE_MM, PEER_TAG0_MM, mm_to_m, needs_aruco_data
 
 pytestmark = needs_aruco_data
 

@@ -9,8 +9,8 @@ import json
 import numpy as np
 import pytest
 
-from oralnav.control.pivot import pivot_calibration
-from oralnav.daemon import cli
+from oralnav.cli import main as cli
+from oralnav.control.calibration.pivot import pivot_calibration
 from tests.helpers import PIVOT_DATA, needs_pivot_data
 
 pytestmark = needs_pivot_data

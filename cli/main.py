@@ -1,0 +1,584 @@
+"""``oralnav``: the command-line tools.
+
+    oralnav sim render SCENE.toml --out DIR [--frames N] [--seed N] [--json]
+    oralnav sim peers --out DIR [--no-cameras] [--json]
+    oralnav markers print FIELD [--fields FILE] --dpi N --out F.png [--no-label] [--json]
+    oralnav config check [FILE] [--json]
+    oralnav track --rig RIG --fields FIELDS --image NAME=PATH [...] [--method M] [--json]
+    oralnav track --rig RIG --fields FIELDS --replay NAME=SOURCE [...] [--mode M] [--json]
+    oralnav track --calibration NAME=calibration.txt [--fields FIELDS] [--body NAME=PATH ...]
+                  [--tag NAME=DICT:ID:SIDE_MM ...] --replay NAME=VIDEO [--frames N] [--json]
+    oralnav calibrate pivot --matrices FILE [--method M] [--json] [--out F --cell ID]
+    oralnav plan fpsm --mesh FILE --slices M --points N --out FPSM.json [--json]
+    oralnav plan place --scene FILE [--figures DIR] [--json]
+    oralnav bench navigation|control|calibration|planning [--quick] --out DIR
+    oralnav bench needle [--trials N] [--seed S] [--workers W] [--quick] [--tracking]
+                         --out DIR [--json]
+    oralnav bench faults [--quick] --out DIR [--json]
+
+Every ``--json`` prints exactly one JSON object on stdout; progress and logs go to stderr.
+Exit status: 0 done, 2 bad input (the message names the file and key), 1 anything else.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import replace
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import cv2
+
+from oralnav import __version__
+from oralnav.cli import calibrate, plan
+from oralnav.cli.sheets import SheetError, render_sheet, write_png
+from oralnav.config.daemon import load_config
+from oralnav.config.errors import ConfigError
+from oralnav.config.fields import load_fields
+from oralnav.config.loader import atomic_write_bytes, atomic_write_text
+from oralnav.config.scene import load_scene
+from oralnav.control.errors import ControlError
+from oralnav.sim.world.render import RenderError, SceneRenderer
+
+
+class UsageError(Exception):
+    """Bad command-line input that argparse cannot catch (exit status 2)."""
+
+
+def _default_fields() -> Path:
+    """The marker fields shipped with the simulated cell, used when no --fields is given."""
+    return Path(str(resources.files("oralnav.config").joinpath("fields/cell.toml")))
+
+
+def _progress(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _emit(args: argparse.Namespace, doc: dict[str, Any], text: str) -> None:
+    if args.json:
+        print(json.dumps(doc))
+    else:
+        print(text)
+
+
+# -- oralnav sim render ---------------------------------------------------------------
+def cmd_sim_render(args: argparse.Namespace) -> int:
+
+    scene = load_scene(args.scene)
+    if args.seed is not None:
+        scene = replace(scene, seed=args.seed)
+    if args.frames < 1:
+        raise UsageError("--frames must be at least 1")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    renderer = SceneRenderer(scene)
+    t0 = time.perf_counter()
+    renderer.prepare()
+    prep = time.perf_counter() - t0
+    frames = []
+    for k in range(args.frames):
+        frame = renderer.render(frame=k)
+        folder = out if args.frames == 1 else out / f"frame_{k:04d}"
+        folder.mkdir(exist_ok=True)
+        files = {}
+        for cam, img in frame.images.items():
+            name = f"{cam}.png"
+            ok, buf = cv2.imencode(".png", img)
+            if not ok:
+                raise RuntimeError(f"PNG encoding failed for camera {cam!r}")
+            atomic_write_bytes(folder / name, buf.tobytes())
+            files[cam] = name
+        truth = frame.truth_json(scene.rig.reference, files)
+        atomic_write_text(folder / "truth.json", json.dumps(truth, indent=1) + "\n")
+        frames.append({"folder": str(folder), "render_ms": {c: round(s * 1e3, 2) for c, s in
+                                                            frame.render_s.items()},
+                       "visible_corners": {c: {f: len(t.corner_ids) for f, t in fl.items()}
+                                           for c, fl in frame.truth.items()}})
+        _progress(f"frame {k + 1}/{args.frames}: " + ", ".join(
+            f"{c} {s * 1e3:.1f} ms" for c, s in frame.render_s.items()))
+    doc = {"scene": str(args.scene), "out": str(out), "seed": scene.seed,
+           "prepare_s": round(prep, 3), "frames": frames}
+    lines = [f"rendered {args.frames} frame(s) of {args.scene} into {out} (seed {scene.seed})"]
+    for cam, fl in frames[-1]["visible_corners"].items():
+        lines.append(f"  {cam}: " + (", ".join(f"{f} {n} corners" for f, n in fl.items())
+                                     or "no field visible"))
+    _emit(args, doc, "\n".join(lines))
+    return 0
+
+
+# -- oralnav markers print ------------------------------------------------------------
+# -- oralnav sim peers ----------------------------------------------------------------
+_PEER_KEYS = """keys (then Enter): e e-stop press/release, p pedal press/release,
+  s protective stop on the arm, f fault on drive axis 1, q quit"""
+
+
+def cmd_sim_peers(args: argparse.Namespace) -> int:
+    """Run a hardware cell of protocol peers until q, end of input or Ctrl-C."""
+    import signal
+
+    def leave(signum: int, frame: object) -> None:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # one is enough: clean up in peace
+        raise KeyboardInterrupt  # unwinds through the peers' clean-up
+
+    signal.signal(signal.SIGTERM, leave)
+    _progress("starting the peers: fake UR controller, Modbus drive unit, serial e-stop "
+              "box" + ("" if args.no_cameras else ", simulated GigE cameras") + "...")
+    try:
+        _run_peers(args)
+    except KeyboardInterrupt:  # a signal while starting or stopping: cleaned up already
+        pass
+    _progress("peers stopped")
+    return 0
+
+
+def _run_peers(args: argparse.Namespace) -> None:
+    import signal
+
+    from oralnav.cli.peers import HardwarePeers
+
+    with HardwarePeers(args.out, cameras=not args.no_cameras) as peers:
+        path = peers.write_config()
+        doc = {"config": str(path), "ur_host": peers.ur.host, "modbus_port": peers.drive.port,
+               "estop": str(peers.box.link), "cameras": peers.camera_addresses}
+        _emit(args, doc, f"peers running; configuration {path}\n"
+                         f"  run: oralnavd --config {path}\n{_PEER_KEYS}")
+        sys.stdout.flush()
+        try:
+            for line in sys.stdin:
+                key = line.strip().lower()[:1]
+                if key == "q":
+                    break
+                if key == "e":
+                    (peers.box.release_estop if peers.box.estop else peers.box.press_estop)()
+                    _progress(f"e-stop {'pressed' if peers.box.estop else 'released'}")
+                elif key == "p":
+                    (peers.box.release_pedal if peers.box.pedal else peers.box.press_pedal)()
+                    _progress(f"pedal {'pressed' if peers.box.pedal else 'released'}")
+                elif key == "s":
+                    peers.ur.inject_protective_stop()
+                    _progress("protective stop (POST /recover/arm, then /reset)")
+                elif key == "f":
+                    peers.drive.fault_axis(1)
+                    _progress("drive axis 1 faulted (POST /recover/effector, then /reset)")
+                elif key:
+                    _progress(_PEER_KEYS)
+            else:  # end of input (not a terminal): run until SIGINT or SIGTERM
+                while True:
+                    signal.pause()
+        except KeyboardInterrupt:
+            pass
+
+
+def cmd_markers_print(args: argparse.Namespace) -> int:
+    fields_path = Path(args.fields) if args.fields else _default_fields()
+    fields = load_fields(fields_path)
+    if args.field not in fields:
+        raise UsageError(f"{fields_path}: no field {args.field!r}; it has {sorted(fields)}")
+    fld = fields[args.field]
+    sheet = render_sheet(fld, args.dpi, label=not args.no_label)
+    write_png(args.out, sheet.image, args.dpi)
+    w_mm, h_mm = (round(v * 1e3, 6) for v in fld.sheet_size)
+    doc = {"field": fld.name, "out": str(args.out), "dpi": args.dpi,
+           "image_px": [int(sheet.image.shape[1]), int(sheet.image.shape[0])],
+           "board_mm": [w_mm, h_mm], "board_origin_px": list(sheet.board_origin_px),
+           "ids": [int(fld.first_id), int(fld.first_id + fld.marker_count - 1)]}
+    _emit(args, doc, f"wrote {args.out}: field {fld.name!r}, board {w_mm:g} x {h_mm:g} mm at "
+                     f"{args.dpi:g} dpi; print at 100 % (actual size) and check the scale bar")
+    return 0
+
+
+# -- oralnav config check -------------------------------------------------------------
+def cmd_config_check(args: argparse.Namespace) -> int:
+    cfg = load_config(args.file)
+    s = cfg.settings
+    doc = {"config": str(cfg.path), "name": s.name, "backend": s.cell.backend,
+           "cameras": list(cfg.rig.names),
+           "endoscope": list(cfg.endoscope_rig.names) if cfg.endoscope_rig else [],
+           "fields": sorted(cfg.fields), "rate_hz": s.control.rate_hz,
+           "api": f"{s.api.host}:{s.api.port}",
+           "calibrations": {k: {"file": c.source, "method": c.method, "created": c.created}
+                            for k, c in cfg.calibrations.items()},
+           "calibrations_missing": cfg.missing_calibrations()}
+    cals = (f"; calibrations of cell {s.calibration.cell!r}: {', '.join(cfg.calibrations)}"
+            if cfg.calibrations and s.calibration else "; no calibration files")
+    if doc["calibrations_missing"]:
+        cals += f" (missing: {', '.join(doc['calibrations_missing'])})"
+    _emit(args, doc, f"{cfg.path}: valid ({s.cell.backend} cell, cameras "
+                     f"{', '.join(doc['cameras'] + doc['endoscope'])}, fields "
+                     f"{', '.join(doc['fields'])}{cals})")
+    return 0
+
+
+# -- oralnav track --------------------------------------------------------------------
+def _named_paths(items: Sequence[str], option: str, what: str = "camera") -> dict[str, Path]:
+    out: dict[str, Path] = {}
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise UsageError(f"{option} expects NAME=PATH, got {item!r}")
+        if name in out:
+            raise UsageError(f"{option}: {what} {name!r} given twice")
+        out[name] = Path(path)
+    return out
+
+
+def _calibration_rig(items: Sequence[str], images: dict[str, Any] | None,
+                     sources: dict[str, Path] | None):
+    """A one-camera rig from ``--calibration NAME=FILE`` (scikit-surgery calibration.txt);
+    the camera is the reference frame, and its image size is that of its first image."""
+    from oralnav.config.rigid_bodies import load_calibration_txt
+    from oralnav.control.vision.camera import Rig
+    from oralnav.drivers.camera.replay import read_frame
+    from oralnav.drivers.errors import DriverError
+
+    cal = _named_paths(items, "--calibration")
+    if len(cal) != 1:
+        raise UsageError("--calibration builds a one-camera rig: give it once "
+                         "(use --rig RIG for several cameras)")
+    ((name, path),) = cal.items()
+    option = "--image" if images is not None else "--replay"
+    given = images if images is not None else sources
+    if not given or name not in given:
+        raise UsageError(f"--calibration names camera {name!r}, but no {option} "
+                         f"{name}=... is given")
+    if images is not None:
+        h, w = images[name].shape[:2]
+    else:
+        try:
+            h, w = read_frame(given[name], 0).shape[:2]
+        except DriverError as exc:
+            raise UsageError(str(exc)) from exc
+    return Rig(name, {name: load_calibration_txt(path, (w, h), name=name)})
+
+
+def _tag_bodies(items: Sequence[str]) -> list:
+    """One-tag bodies from ``--tag NAME=DICT:ID:SIDE_MM``."""
+    from oralnav.control.errors import MarkerFieldError
+    from oralnav.control.vision.rigid_body import single_tag_body
+
+    out = []
+    for item in items:
+        name, sep, spec = item.partition("=")
+        parts = spec.split(":")
+        if not sep or not name or len(parts) != 3:
+            raise UsageError(f"--tag expects NAME=DICT:ID:SIDE_MM (e.g. "
+                             f"tag=DICT_4X4_50:0:50), got {item!r}")
+        dictionary, tag_id, side = parts
+        try:
+            tid, side_mm = int(tag_id), float(side)
+        except ValueError:
+            raise UsageError(f"--tag {item!r}: ID must be a whole number and SIDE_MM a "
+                             "length in millimetres") from None
+        try:
+            out.append(single_tag_body(tid, side_mm * 1e-3, dictionary, name=name))
+        except MarkerFieldError as exc:
+            raise UsageError(f"--tag {item!r}: {exc}") from None
+    return out
+
+
+def _read_mono(path: Path, camera: str) -> Any:
+    if not path.is_file():
+        raise UsageError(f"camera {camera!r}: no image file {path}")
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise UsageError(f"camera {camera!r}: {path} is not a readable image")
+    return img
+
+
+def _estimate_doc(est) -> dict[str, Any]:
+    doc = {"T_ref_field": [[round(float(v), 9) for v in row] for row in est.T_ref_field],
+           "corners": est.corners, "reproj_rms_px": round(est.reproj_rms_px, 4),
+           "cameras": list(est.cameras),
+           "position_sigma_mm": round(est.position_sigma_m * 1e3, 5)}
+    if hasattr(est, "tags_seen"):  # a rigid body's BodyEstimate
+        doc.update(method=est.method, tags_seen=list(est.tags_seen),
+                   tags_used=list(est.tags_used), quality=round(est.quality, 5))
+    return doc
+
+
+def _frame_doc(tracker, est: dict[str, Any]) -> dict[str, Any]:
+    """One frame's estimates: marker fields under "fields", rigid bodies under "bodies"
+    (same keys, plus method, tags_seen, tags_used, quality), and the timing in ms."""
+    t = tracker.last_timing
+    return {"fields": {n: _estimate_doc(e) for n, e in est.items() if n in tracker.fields},
+            "bodies": {n: _estimate_doc(e) for n, e in est.items() if n in tracker.bodies},
+            "timing_ms": {k: round(v, 3) for k, v in t.as_dict().items() if k != "stages"}}
+
+
+def _found(est: dict[str, Any]) -> str:
+    return ", ".join(f"{n} {len(e.tags_used)} tag(s)" if hasattr(e, "tags_used")
+                     else f"{n} {e.corners} corners" for n, e in est.items()) or "nothing found"
+
+
+def cmd_track(args: argparse.Namespace) -> int:
+    from oralnav.config.rig import load_rig
+    from oralnav.config.rigid_bodies import load_rigid_bodies
+    from oralnav.control.vision.tracker import Tracker
+
+    if bool(args.image) == bool(args.replay):
+        raise UsageError("give either --image NAME=PATH (one frame) or --replay NAME=SOURCE")
+    if bool(args.rig) == bool(args.calibration):
+        raise UsageError("give either --rig RIG or --calibration NAME=FILE (one camera)")
+    images = sources = None
+    if args.image:
+        images = {c: _read_mono(p, c) for c, p in _named_paths(args.image, "--image").items()}
+    else:
+        sources = _named_paths(args.replay, "--replay")
+    rig = load_rig(args.rig) if args.rig else _calibration_rig(args.calibration, images,
+                                                                sources)
+    fields = list(load_fields(args.fields).values()) if args.fields else []
+    bodies = load_rigid_bodies(
+        _named_paths(args.body, "--body", "body").items(), args.body_dictionary)
+    bodies += _tag_bodies(args.tag)
+    if not fields and not bodies:
+        raise UsageError("nothing to track: give --fields FIELDS, --body NAME=PATH or "
+                         "--tag NAME=DICT:ID:SIDE_MM")
+    tracker = Tracker(rig, fields, method=args.method, mode=args.mode, bodies=bodies)
+    if images is not None:
+        est = tracker.track(images)
+        t = tracker.last_timing
+        lines = [f"{n}: {e.corners} corners, rms {e.reproj_rms_px:.3f} px, t = "
+                 + " ".join(f"{v * 1e3:.3f}" for v in e.T_ref_field[:3, 3]) + " mm"
+                 for n, e in est.items()] or ["nothing found"]
+        _emit(args, _frame_doc(tracker, est), "\n".join(lines + [f"total {t.total:.1f} ms"]))
+        return 0
+    return _track_replay(args, tracker, sources)
+
+
+def _track_replay(args: argparse.Namespace, tracker, sources: dict[str, Path]) -> int:
+    from oralnav.drivers.camera.replay import frame_count, read_frame
+    from oralnav.drivers.errors import DriverError
+
+    try:
+        counts = {c: frame_count(p) for c, p in sources.items()}
+    except DriverError as exc:
+        raise UsageError(str(exc)) from exc
+    n = min(counts.values())
+    if args.frames is not None:
+        n = min(n, args.frames)
+    frames = []
+    for k in range(n):
+        try:
+            images = {c: read_frame(p, k) for c, p in sources.items()}
+        except DriverError as exc:
+            raise UsageError(str(exc)) from exc
+        est = tracker.track(images)
+        frames.append({"frame": k, **_frame_doc(tracker, est),
+                       "stages": dict(tracker.last_timing.stages)})
+        if not args.json or (k + 1) % 25 == 0:
+            _progress(f"frame {k + 1}/{n}: {_found(est)}")
+    times = [f["timing_ms"]["total"] for f in frames]
+    doc = {"frames": frames, "timing_ms": {
+        "median": round(float(sorted(times)[len(times) // 2]), 3) if times else None}}
+    _emit(args, doc, f"tracked {n} frame(s); median {doc['timing_ms']['median']} ms per frame")
+    return 0
+
+
+# -- oralnav bench --------------------------------------------------------------------
+def cmd_bench(args: argparse.Namespace) -> int:
+    from oralnav.bench import calibration, control, navigation, planning
+
+    bench = {"navigation": navigation, "control": control, "calibration": calibration,
+             "planning": planning}[args.cmd]
+    bench.main(Path(args.out), quick=args.quick)
+    return 0
+
+
+def cmd_bench_needle(args: argparse.Namespace) -> int:
+    from oralnav.bench import needle
+
+    if args.trials is not None and args.trials < 1:
+        raise UsageError(f"--trials must be at least 1, got {args.trials}")
+    if args.workers is not None and args.workers < 1:
+        raise UsageError(f"--workers must be at least 1, got {args.workers}")
+    doc = needle.main(Path(args.out), quick=args.quick, trials=args.trials, seed=args.seed,
+                      workers=args.workers)
+    s = needle.summary(doc)
+    _emit(args, s, f"{s['trials']} trials: overall {100 * s['overall']:.1f} %; "
+                   + ", ".join(f"{k} {100 * v:.1f} %" for k, v in s["steps"].items())
+                   + f" (details in {Path(args.out) / 'needle.json'})")
+    if args.tracking:
+        from oralnav.bench import needle_tracking
+
+        # the speed/accuracy chart goes to the same folder; its summary to stderr
+        needle_tracking.main(Path(args.out), quick=args.quick, seed=args.seed)
+    return 0
+
+
+def cmd_bench_faults(args: argparse.Namespace) -> int:
+    from oralnav.bench import faults
+
+    s = faults.summary(faults.main(Path(args.out), quick=args.quick))
+    _emit(args, s, "fault campaign: " + ", ".join(
+        f"{k} {'met' if v['met'] else 'NOT met' if v['met'] is False else 'undecided'}"
+        for k, v in s["targets"].items()) + f" (details in {s['json']})")
+    return 0
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose subcommands refuse arguments they do not know themselves.
+
+    argparse's subcommands leave unknown arguments to the top-level parser, which then
+    prints the top-level usage; the subcommand's own usage is what helps. The subcommand
+    parsers are of the parent's class, so every level refuses its own unknown arguments.
+    """
+
+    def parse_known_args(self, args: Sequence[str] | None = None,
+                         namespace: argparse.Namespace | None = None
+                         ) -> tuple[argparse.Namespace, list[str]]:
+        ns, extras = super().parse_known_args(args, namespace)
+        if extras:
+            self.error(f"unrecognized arguments: {' '.join(extras)}")
+        return ns, extras
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="oralnav", description="oralnav tools")
+    p.add_argument("--version", action="version", version=f"oralnav {__version__}")
+    sub = p.add_subparsers(dest="group", required=True)
+
+    sim = sub.add_parser("sim", help="scene simulator").add_subparsers(dest="cmd", required=True)
+    r = sim.add_parser("render", help="render a scene file to PNGs with ground truth")
+    r.add_argument("scene", help="scene TOML file (see docs/formats.md)")
+    r.add_argument("--out", required=True, help="output folder (created if missing)")
+    r.add_argument("--frames", type=int, default=1, help="frames to render (noise differs)")
+    r.add_argument("--seed", type=int, default=None, help="override the scene's seed")
+    r.add_argument("--json", action="store_true", help="print one JSON object")
+    r.set_defaults(func=cmd_sim_render)
+
+    pe = sim.add_parser("peers", help="run a hardware cell of protocol peers (fake UR "
+                        "controller, Modbus drive, serial e-stop box, GigE cameras) and "
+                        "write its configuration")
+    pe.add_argument("--out", required=True, help="folder for cell.toml and the e-stop link")
+    pe.add_argument("--no-cameras", action="store_true", help="leave the cameras out")
+    pe.add_argument("--json", action="store_true", help="print one JSON object")
+    pe.set_defaults(func=cmd_sim_peers)
+
+    mk = sub.add_parser("markers", help="marker fields").add_subparsers(dest="cmd",
+                                                                        required=True)
+    pr = mk.add_parser("print", help="write a printable sheet of a field at true scale")
+    pr.add_argument("field", help="field name in the fields file")
+    pr.add_argument("--fields", help="marker-field TOML (default: the shipped cell fields)")
+    pr.add_argument("--dpi", type=float, required=True, help="printer resolution, dots/inch")
+    pr.add_argument("--out", required=True, help="PNG file to write")
+    pr.add_argument("--no-label", action="store_true", help="board and quiet zone only")
+    pr.add_argument("--json", action="store_true", help="print one JSON object")
+    pr.set_defaults(func=cmd_markers_print)
+
+    cf = sub.add_parser("config", help="daemon configuration").add_subparsers(dest="cmd",
+                                                                             required=True)
+    ck = cf.add_parser("check", help="validate a daemon configuration and its files")
+    ck.add_argument("file", nargs="?", default=None, help="config TOML (default: sim.toml)")
+    ck.add_argument("--json", action="store_true", help="print one JSON object")
+    ck.set_defaults(func=cmd_config_check)
+
+    tk = sub.add_parser("track", help="estimate marker-field and rigid-body poses in images "
+                                      "or recordings")
+    tk.add_argument("--rig", help="rig TOML (cameras, reference frame)")
+    tk.add_argument("--calibration", action="append", default=[], metavar="NAME=FILE",
+                    help="instead of --rig: one camera from a scikit-surgery calibration.txt "
+                         "(3 lines of K, 1 of distortion; pixels), the reference frame; its "
+                         "image size is that of its first image")
+    tk.add_argument("--fields", help="marker-field TOML (optional with --body or --tag)")
+    tk.add_argument("--body", action="append", default=[], metavar="NAME=PATH",
+                    help="an ArUco rigid body: a scikit-surgery tag table (tag id, centre, "
+                         "4 corners; millimetres) of --body-dictionary tags (repeat per body)")
+    tk.add_argument("--body-dictionary", default="DICT_ARUCO_ORIGINAL", metavar="DICT",
+                    help="OpenCV dictionary of the --body tables' tags "
+                         "(default DICT_ARUCO_ORIGINAL, the peer's)")
+    tk.add_argument("--tag", action="append", default=[], metavar="NAME=DICT:ID:SIDE_MM",
+                    help="a one-tag body, e.g. tag=DICT_4X4_50:0:50; its frame is at the tag "
+                         "centre, x right and y down on the print, z away from the camera")
+    tk.add_argument("--image", action="append", default=[], metavar="NAME=PATH",
+                    help="one camera's image of a single frame (repeat per camera)")
+    tk.add_argument("--replay", action="append", default=[], metavar="NAME=SOURCE",
+                    help="one camera's recording: a video file or an image folder")
+    tk.add_argument("--frames", type=int, default=None, help="replay at most N frames")
+    tk.add_argument("--method", default="nvgba", choices=["nvgba", "ba", "pnp", "opencv"])
+    tk.add_argument("--mode", default="predict", choices=["predict", "roi", "full"],
+                    help="search stage cap for replays (a single frame always searches "
+                         "whole images)")
+    tk.add_argument("--json", action="store_true", help="print one JSON object")
+    tk.set_defaults(func=cmd_track)
+
+    calibrate.add_parser(sub)
+    plan.add_parser(sub)
+
+    bn = sub.add_parser("bench", help="benchmarks").add_subparsers(dest="cmd", required=True)
+    nv = bn.add_parser("navigation", help="speed/accuracy charts of the tracker (minutes)")
+    nv.add_argument("--quick", action="store_true", help="fewer frames (about 2-3 minutes)")
+    nv.add_argument("--out", required=True, help="folder for navigation.json and charts")
+    nv.set_defaults(func=cmd_bench)
+    cl = bn.add_parser("control", help="control-loop period jitter, thread against process, "
+                                       "with tracking at full rate (minutes)")
+    cl.add_argument("--quick", action="store_true", help="8 s per run instead of 60 s")
+    cl.add_argument("--out", required=True, help="folder for control.json and its chart")
+    cl.set_defaults(func=cmd_bench)
+    cb = bn.add_parser("calibration", help="TRE of the calibrated chain against the number "
+                                           "of samples and the corner noise (minutes)")
+    cb.add_argument("--quick", action="store_true", help="8 trials a point instead of 30")
+    cb.add_argument("--out", required=True, help="folder for calibration.json and its chart")
+    cb.set_defaults(func=cmd_bench)
+    pl = bn.add_parser("planning", help="surrogate-model fit, its answers against the exact "
+                                        "mesh and the placement search, next to the paper's "
+                                        "figures (about a minute)")
+    pl.add_argument("--quick", action="store_true", help="fewer repeats, rods and seeds "
+                                                         "(about 30 s)")
+    pl.add_argument("--out", required=True, help="folder for planning.json and its charts")
+    pl.set_defaults(func=cmd_bench)
+    nd = bn.add_parser("needle", help="needle grasp, hand-off, drive, regrasp and pull on "
+                                      "randomised simulated cells: success per step, "
+                                      "failures by cause (about 5 s a trial per core)")
+    nd.add_argument("--trials", type=int, default=None,
+                    help="number of trials (default 200; 10 with --quick)")
+    nd.add_argument("--seed", type=int, default=0, help="first trial's seed (default 0)")
+    nd.add_argument("--workers", type=int, default=None,
+                    help="processes (default: one per CPU)")
+    nd.add_argument("--quick", action="store_true", help="fewer trials")
+    nd.add_argument("--out", required=True, help="folder for needle.json (and charts)")
+    nd.add_argument("--json", action="store_true",
+                    help='print {"trials", "overall", "steps"} as one JSON object')
+    nd.add_argument("--tracking", action="store_true",
+                    help="also chart tracking speed against accuracy (particles 100..10000) "
+                         "and where the tracker loses the needle: needle_tracking.json "
+                         "(about 15 min; 2 with --quick)")
+    nd.set_defaults(func=cmd_bench_needle)
+    fa = bn.add_parser("faults", help="fault campaign on the running daemon: kill -9 of the "
+                                      "daemon and of its control process, SIGSTOP, hostile "
+                                      "bodies, reset cycles, a soak with RSS (about 40 min; "
+                                      "3-6 with --quick)")
+    fa.add_argument("--quick", action="store_true", help="3 kill rounds, 10 reset cycles, "
+                                                         "a 60 s soak")
+    fa.add_argument("--out", required=True, help="folder for faults.json and faults.png")
+    fa.add_argument("--json", action="store_true", help="print the targets as one JSON object")
+    fa.set_defaults(func=cmd_bench_faults)
+    return p
+
+
+def run(argv: Sequence[str] | None = None) -> int:
+    """Parse ``argv`` and run the command; returns the exit status."""
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (ConfigError, ControlError, RenderError, SheetError, UsageError,
+            calibrate.SampleFileError, FileNotFoundError) as exc:
+        _fail(args, str(exc), 2)
+        return 2
+    except (OSError, RuntimeError, ValueError) as exc:
+        _fail(args, f"{type(exc).__name__}: {exc}", 1)
+        return 1
+
+
+def _fail(args: argparse.Namespace, msg: str, code: int) -> None:
+    print(f"oralnav: error: {msg}", file=sys.stderr)
+    if getattr(args, "json", False):
+        print(json.dumps({"error": msg, "exit": code}))
+
+
+def main() -> None:
+    sys.exit(run())

@@ -1,0 +1,227 @@
+"""`oralnav calibrate ...` (issue 5 items 5-7): simulated capture, every chain calibration
+from the recorded sample files, the calibration files they write, and bad input that must
+leave the previous calibration in place."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from oralnav.cli import calibrate
+from oralnav.cli import main as cli
+from oralnav.config.calibration import load_calibration
+from oralnav.config.cell import load_cell_config
+from oralnav.config.daemon import load_config
+from oralnav.control.geometry import invert, pose_error
+from oralnav.daemon.navigation_task import nav_calibration
+
+ROOT = Path(__file__).resolve().parents[2]
+G = load_cell_config(ROOT / "config" / "examples" / "sim_cell.toml").geometry
+
+
+def _json(capsys) -> dict:
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1, out
+    return json.loads(out[0])
+
+
+def _err(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    dt, dr = pose_error(T, T_true)
+    return dt * 1e3, float(np.degrees(dr))
+
+
+@pytest.fixture(scope="module")
+def chain(tmp_path_factory) -> tuple[Path, Path]:
+    """A simulated capture (15 samples at 0.15 px) and the chain calibrated from it."""
+    root = tmp_path_factory.mktemp("cal")
+    assert cli.run(["calibrate", "capture", "--out", str(root / "samples"), "--samples", "15",
+                    "--seed", "3"]) == 0
+    assert cli.run(["calibrate", "chain", "--samples", str(root / "samples"), "--out",
+                    str(root / "cal"), "--cell", "oralnav-sim"]) == 0
+    return root / "samples", root / "cal"
+
+
+def test_capture_writes_every_sample_file(chain):
+    """Item 7: the simulated arm records each calibration's samples as text matrices."""
+    samples, _ = chain
+    doc = json.loads((samples / "capture.json").read_text())
+    for kind, files in calibrate.CAPTURE_FILES.items():
+        for f in files:
+            T = np.loadtxt(samples / kind / f).reshape(-1, 4, 4)
+            assert len(T) == (150 if kind == "pivot" else 15), (kind, f)
+    assert doc["corner_noise_px"] == 0.15
+
+
+def test_chain_recovers_the_simulated_truth(chain):
+    """Targets: hand-eye within 0.05 deg and 0.2 mm of the simulator's truth, through the
+    whole capture-and-calibrate path; the other links within 0.2 mm and 0.2 deg."""
+    _, cal = chain
+    he = load_calibration(cal / "hand_eye.toml", kind="hand_eye", cell="oralnav-sim")
+    mm, deg = _err(he["T_B_C"], G.T_B_C)
+    assert mm < 0.2 and deg < 0.05, (mm, deg)
+    checks = {"endoscope_opener": ("T_OM_En", G.T_OM_En),
+              "effector_zero": ("T_RM_E0", invert(G.T_tcp_RM) @ G.T_tcp_E0),
+              "effector_marker": ("T_EM_E", invert(G.T_E_EM))}
+    for kind, (key, truth) in checks.items():
+        c = load_calibration(cal / f"{kind}.toml", kind=kind)
+        mm, deg = _err(c[key], truth)
+        assert mm < 0.2 and deg < 0.2, (kind, mm, deg)
+        assert c.samples.count == 15 and len(c.samples.sha256) == 64
+        assert c.residuals["samples_used"] >= 10
+    assert len(he.residuals["per_pose_mm"]) == 15
+
+
+def test_daemon_navigates_on_the_calibration_files(chain, tmp_path):
+    """Item 6: the daemon configuration names the files; navigation uses their values."""
+    _, cal = chain
+    text = (ROOT / "config" / "sim.toml").read_text()
+    text = text.replace('"rigs/', f'"{ROOT}/config/rigs/').replace(
+        '"fields/', f'"{ROOT}/config/fields/').replace('"examples/', f'"{ROOT}/config/examples/')
+    # the shipped [calibration] section, pointed at this test's files and cell
+    text = text.replace('"calibration/', f'"{cal}/').replace('cell = "sim-cell"',
+                                                             'cell = "oralnav-sim"')
+    path = tmp_path / "oralnav.toml"
+    path.write_text(text)
+    cfg = load_config(path)
+    assert all(c.source.startswith(str(cal)) for c in cfg.calibrations.values())
+    nav = nav_calibration(cfg.calibrations)   # no cell: every kind must come from a file
+    np.testing.assert_array_equal(nav.T_B_C, cfg.calibrations["hand_eye"]["T_B_C"])
+    np.testing.assert_array_equal(nav.T_EM_E, cfg.calibrations["effector_marker"]["T_EM_E"])
+    with pytest.raises(KeyError, match="hand_eye"):
+        nav_calibration({})
+
+
+def test_hand_eye_cli_reports_per_pose_residuals(chain, capsys):
+    samples, _ = chain
+    assert cli.run(["calibrate", "hand-eye", "--robot", str(samples / "hand_eye/T_B_tcp.txt"),
+                    "--marker", str(samples / "hand_eye/T_C_RM.txt"), "--json"]) == 0
+    doc = _json(capsys)
+    assert len(doc["per_pose_mm"]) == 15 and doc["rms_mm"] < 0.2
+    assert doc["out"] is None
+
+
+def test_refused_calibration_keeps_the_previous_file(chain, tmp_path, capsys):
+    """Bad input: rotations about one axis only (degenerate for hand-eye) exit 2 with a
+    message saying so, and the existing calibration file is untouched."""
+    samples, cal = chain
+    out = tmp_path / "hand_eye.toml"
+    out.write_bytes((cal / "hand_eye.toml").read_bytes())
+    before = out.read_bytes()
+    T = np.loadtxt(samples / "hand_eye/T_B_tcp.txt").reshape(-1, 4, 4)
+    from scipy.spatial.transform import Rotation
+    spin = Rotation.from_rotvec(np.linspace(-0.4, 0.4, len(T))[:, None] * [0, 0, 1.0])
+    T[:, :3, :3] = spin.as_matrix()
+    robot = tmp_path / "T_B_tcp.txt"
+    np.savetxt(robot, T.reshape(-1, 4))
+    code = cli.run(["calibrate", "hand-eye", "--robot", str(robot), "--marker",
+                    str(samples / "hand_eye/T_C_RM.txt"), "--out", str(out),
+                    "--cell", "oralnav-sim", "--json"])
+    assert code == 2
+    assert "axis" in _json(capsys)["error"]
+    assert out.read_bytes() == before
+
+
+@pytest.mark.parametrize("content, match", [
+    ("1 2 3\n4 5 6\n", "4N rows of 4 numbers"),
+    ("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n" * 2 + "1 0 0\n", "not a table of numbers"),
+    ("nan 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", "non-finite"),
+    ("2 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", "not rigid"),
+])
+def test_malformed_sample_files_name_file_and_problem(tmp_path, capsys, content, match):
+    """Bad input: a file of the wrong shape, NaNs, non-rigid matrices: exit 2, the file named."""
+    bad = tmp_path / "T_C_OM.txt"
+    bad.write_text(content)
+    code = cli.run(["calibrate", "endoscope-opener", "--opener", str(bad), "--board-camera",
+                    str(bad), "--board-endoscope", str(bad), "--json"])
+    assert code == 2
+    err = _json(capsys)["error"]
+    assert match in err and str(bad) in err
+
+
+def test_sample_files_of_different_lengths_are_refused(chain, tmp_path, capsys):
+    samples, _ = chain
+    short = tmp_path / "T_C_CB.txt"
+    short.write_text("\n".join((samples / "endoscope_opener/T_C_CB.txt").read_text()
+                               .splitlines()[:16]) + "\n")
+    code = cli.run(["calibrate", "endoscope-opener",
+                    "--opener", str(samples / "endoscope_opener/T_C_OM.txt"),
+                    "--board-camera", str(short),
+                    "--board-endoscope", str(samples / "endoscope_opener/T_En_CB.txt"),
+                    "--json"])
+    assert code == 2 and "same instants" in _json(capsys)["error"]
+
+
+def test_out_without_cell_is_refused(tmp_path, capsys):
+    code = cli.run(["calibrate", "hand-eye", "--robot", "x", "--marker", "y", "--out",
+                    str(tmp_path / "he.toml"), "--json"])
+    assert code == 2 and "--cell" in _json(capsys)["error"]
+
+
+def test_chain_names_the_samples_folder_and_what_is_missing(tmp_path, capsys):
+    """issue 30: `oralnav calibrate chain --samples out/nope` names the folder the user gave
+    to --samples and what is missing, never a step's own option (--robot) the user did not
+    type, and writes nothing."""
+    out = tmp_path / "cal"
+    nope = tmp_path / "nope"
+    assert cli.run(["calibrate", "chain", "--samples", str(nope), "--out", str(out),
+                    "--cell", "sim-cell", "--json"]) == 2
+    err = _json(capsys)["error"]
+    assert err.startswith(f"{nope}: --samples: no such folder") and "--robot" not in err
+    part = tmp_path / "part"
+    (part / "hand_eye").mkdir(parents=True)
+    (part / "hand_eye" / "T_B_tcp.txt").write_text(" ".join(["1"] * 16) + "\n")
+    assert cli.run(["calibrate", "chain", "--samples", str(part), "--out", str(out),
+                    "--cell", "sim-cell", "--json"]) == 2
+    err = _json(capsys)["error"]
+    assert err.startswith(f"{part}: --samples: not a complete capture folder")
+    assert "hand_eye/T_C_RM.txt" in err and "T_B_tcp" not in err and "--robot" not in err
+    assert not out.exists()
+
+
+# -- intrinsics and stereo from images (item 1) ---------------------------------------------
+@pytest.fixture(scope="module")
+def stereo_views(tmp_path_factory) -> Path:
+    """16 rendered board views through the simulated stereo rig, as PNGs."""
+    out = tmp_path_factory.mktemp("views")
+    assert cli.run(["calibrate", "capture-views", "--rig", str(ROOT / "config/rigs/stereo.toml"),
+                    "--out", str(out), "--views", "16"]) == 0
+    return out
+
+
+def test_stereo_from_images_recovers_focal_and_baseline(stereo_views, tmp_path, capsys):
+    """Targets: focal length within 0.1 % and the stereo baseline within 0.05 mm of the
+    simulated rig, from PNG images through `oralnav calibrate stereo`; the calibration file
+    nests the rig and --rig-out writes a loadable rig file."""
+    from oralnav.config.rig import load_rig
+
+    v = stereo_views
+    assert cli.run(["calibrate", "stereo", "--left", str(v / "left"), "--right", str(v / "right"),
+                    "--fields", str(v / "board.toml"), "--out", str(tmp_path / "stereo.toml"),
+                    "--cell", "sim-cell", "--rig-out", str(tmp_path / "rig.toml"),
+                    "--json"]) == 0
+    doc = _json(capsys)
+    truth = load_rig(ROOT / "config/rigs/stereo.toml")
+    assert abs(doc["baseline_m"] - 0.1) < 0.05e-3
+    rig = load_rig(tmp_path / "rig.toml")
+    for name in ("left", "right"):
+        f, f_true = rig[name].K[0, 0], truth[name].K[0, 0]
+        assert abs(f / f_true - 1) < 1e-3, (name, f)
+    cal = load_calibration(tmp_path / "stereo.toml", kind="stereo", cell="sim-cell")
+    np.testing.assert_allclose(cal["rig"]["right"].T_ref_cam, rig["right"].T_ref_cam)
+
+
+def test_camera_from_images_refuses_too_few_views(stereo_views, tmp_path, capsys):
+    """Bad input: four images are too few for intrinsics; exit 2, nothing written."""
+    few = tmp_path / "few"
+    few.mkdir()
+    for p in sorted((stereo_views / "left").iterdir())[:4]:
+        (few / p.name).write_bytes(p.read_bytes())
+    out = tmp_path / "cam.toml"
+    code = cli.run(["calibrate", "camera", "--images", str(few), "--fields",
+                    str(stereo_views / "board.toml"), "--out", str(out), "--cell", "c",
+                    "--json"])
+    assert code == 2 and "view" in _json(capsys)["error"]
+    assert not out.exists()

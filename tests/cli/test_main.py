@@ -1,0 +1,199 @@
+"""Command-line tools: `oralnav sim render`, `oralnav markers print`, `oralnav config
+check` and the `oralnavd` stub, run in-process through their entry functions."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+
+from oralnav.cli import main as cli
+from oralnav.cli.sheets import read_png_dpi
+from oralnav.daemon import main
+
+ROOT = Path(__file__).resolve().parents[2]
+ENDO_SCENE = ROOT / "config" / "examples" / "endoscope_view.toml"
+
+
+def _one_json(capsys) -> dict:
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1, out
+    return json.loads(out[0])
+
+
+def test_sim_render_writes_pngs_and_truth(tmp_path, capsys):
+    """Issue 2 item 7: `oralnav sim render SCENE --out DIR` writes one PNG per camera and
+    truth.json; --json prints exactly one JSON object."""
+    assert cli.run(["sim", "render", str(ENDO_SCENE), "--out", str(tmp_path), "--json"]) == 0
+    doc = _one_json(capsys)
+    assert doc["frames"][0]["visible_corners"]["endoscope"]["effector"] > 10
+    img = cv2.imread(str(tmp_path / "endoscope.png"), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (1080, 1920)
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    cam = truth["cameras"]["endoscope"]
+    assert cam["image"] == "endoscope.png" and cam["size"] == [1920, 1080]
+    eff = cam["fields"]["effector"]
+    assert len(eff["corner_ids"]) == len(eff["corners_px"]) == len(eff["obliquity_deg"])
+    assert truth["reference"] == "endoscope"
+
+
+def test_sim_render_frames_are_reproducible(tmp_path, capsys):
+    """Issue 2 item 7: same scene + seed gives the same bytes, across runs of the tool."""
+    for out in ("a", "b"):
+        assert cli.run(["sim", "render", str(ENDO_SCENE), "--out", str(tmp_path / out),
+                        "--frames", "2", "--seed", "11"]) == 0
+    capsys.readouterr()
+    for k in range(2):
+        a = (tmp_path / "a" / f"frame_{k:04d}" / "endoscope.png").read_bytes()
+        b = (tmp_path / "b" / f"frame_{k:04d}" / "endoscope.png").read_bytes()
+        assert a == b
+    assert (tmp_path / "a" / "frame_0000" / "endoscope.png").read_bytes() != \
+        (tmp_path / "a" / "frame_0001" / "endoscope.png").read_bytes()
+
+
+def test_sim_render_bad_scene_names_file_and_key(tmp_path, capsys):
+    """Issue 2 bad input: a malformed scene gets one clear error naming file and key, exit
+    status 2, and nothing is written."""
+    bad = tmp_path / "bad.toml"
+    bad.write_text(ENDO_SCENE.read_text().replace('rig = "../rigs/endoscope.toml"',
+                                                  f'rig = "{ROOT}/config/rigs/endoscope.toml"')
+                   .replace('fields = "../fields/cell.toml"',
+                            f'fields = "{ROOT}/config/fields/cell.toml"')
+                   .replace("blur_sigma_px = 1.2", "blur_sigma_px = -1.0"))
+    out = tmp_path / "out"
+    assert cli.run(["sim", "render", str(bad), "--out", str(out), "--json"]) == 2
+    captured = capsys.readouterr()
+    err = json.loads(captured.out)["error"]
+    assert "bad.toml" in err and "[imaging] blur_sigma_px" in err
+    assert not out.exists()
+
+
+def test_markers_print_writes_true_scale_png(tmp_path, capsys):
+    """Issue 2 item 6: `oralnav markers print FIELD --dpi N --out F.png` writes a sheet
+    whose PNG carries the dpi, with the board at true scale."""
+    out = tmp_path / "opener.png"
+    assert cli.run(["markers", "print", "opener", "--dpi", "600", "--out", str(out),
+                    "--json"]) == 0
+    doc = _one_json(capsys)
+    assert doc["board_mm"] == [36.0, 27.0]
+    assert abs(read_png_dpi(out) - 600) < 0.01
+    img = cv2.imread(str(out), cv2.IMREAD_GRAYSCALE)
+    assert img.shape[1] == doc["image_px"][0]
+    # the board spans 36 mm = 850.4 px at 600 dpi: a dark run starts at its origin
+    x0, y0 = doc["board_origin_px"]
+    assert img[y0 + 5, x0 + 5] < 128  # top-left square is black
+    assert cli.run(["markers", "print", "nosuch", "--dpi", "600", "--out", str(out)]) == 2
+    assert "no field 'nosuch'" in capsys.readouterr().err
+
+
+def test_config_check_reports_errors_with_file_and_key(tmp_path, capsys):
+    """Issue 2 item 3: `oralnav config check` validates a configuration; a broken one is
+    refused naming file, section and key."""
+    assert cli.run(["config", "check", "--json"]) == 0
+    doc = _one_json(capsys)
+    assert doc["backend"] == "sim" and set(doc["fields"]) == {"robot", "effector", "opener"}
+    bad = tmp_path / "cfg.toml"
+    bad.write_text((ROOT / "config" / "sim.toml").read_text()
+                   .replace('rig = "rigs/', f'rig = "{ROOT}/config/rigs/')
+                   .replace("max_speed = 0.25", "max_speed = 0.3"))
+    assert cli.run(["config", "check", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "cfg.toml" in err and "[safety] max_speed" in err
+
+
+def test_oralnavd_check_and_bad_config(tmp_path, capsys):
+    """Issue 2 item 1: `oralnavd` loads and validates its configuration (the embedded
+    simulation default, or --config FILE) and refuses a broken one before starting."""
+    assert main.run(["--check", "--json"]) == 0
+    doc = _one_json(capsys)
+    assert doc["valid"] and doc["api"]["port"] == 8750
+    assert main.run(["--check", "--api-port", "9100", "--json"]) == 0
+    assert _one_json(capsys)["api"]["port"] == 9100
+    bad = tmp_path / "d.toml"
+    bad.write_text("[cell]\nbackend = 'sim'\nrig = 'x.toml'\nfields = 'y.toml'\nbogus = 1\n")
+    assert main.run(["--config", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "d.toml" in err and "bogus" in err and "unknown key" in err
+
+
+def test_bench_needle_tracking_flag_runs_the_tracking_chart(tmp_path, capsys, monkeypatch):
+    """Issue 7 benchmarks: `oralnav bench needle --tracking` runs the Monte Carlo and the
+    tracking speed/accuracy chart into the same folder, with the same seed and quickness,
+    and --json still prints exactly one object (the Monte Carlo's summary). Both benches
+    are replaced by recorders here; their own tests run them."""
+    from oralnav.bench import needle, needle_tracking
+
+    calls = []
+    steps = {k: 0.5 for k in ("NG", "NH", "ND", "NR", "NP")}
+    monkeypatch.setattr(needle, "main", lambda out, **kw: calls.append(("mc", out, kw))
+                        or {"trials": 2, "overall": 0.5, "steps": steps})
+    monkeypatch.setattr(needle_tracking, "main",
+                        lambda out, **kw: calls.append(("tracking", out, kw)) or {})
+    assert cli.run(["bench", "needle", "--trials", "2", "--seed", "7", "--quick",
+                    "--tracking", "--out", str(tmp_path), "--json"]) == 0
+    assert _one_json(capsys) == {"trials": 2, "overall": 0.5, "steps": steps}
+    assert [c[0] for c in calls] == ["mc", "tracking"]
+    assert calls[1][1] == tmp_path and calls[1][2] == {"quick": True, "seed": 7}
+    calls.clear()
+    assert cli.run(["bench", "needle", "--trials", "2", "--out", str(tmp_path)]) == 0
+    assert [c[0] for c in calls] == ["mc"]
+
+
+def test_bench_needle_bad_counts_exit_2_naming_the_option(tmp_path, capsys):
+    """issue 30: `oralnav bench needle --trials 0` (or --workers 0) is bad input: exit
+    status 2 and a message naming the option, before any trial runs."""
+    for option in ("--trials", "--workers"):
+        assert cli.run(["bench", "needle", option, "0", "--out", str(tmp_path), "--json"]) == 2
+        doc = _one_json(capsys)
+        assert doc["exit"] == 2 and f"{option} must be at least 1, got 0" in doc["error"]
+    assert not list(tmp_path.iterdir())
+
+
+def test_unknown_flag_on_a_subcommand_prints_its_usage(capsys):
+    """issue 30: an unknown flag on a subcommand prints that subcommand's usage (not the
+    top-level one) and exits 2."""
+    import pytest
+
+    for argv, usage in ((["config", "check", "--bogus"], "usage: oralnav config check"),
+                        (["bench", "needle", "--out", "x", "--bogus"],
+                         "usage: oralnav bench needle"),
+                        (["calibrate", "chain", "--samples", "a", "--out", "b", "--cell", "c",
+                          "--bogus"], "usage: oralnav calibrate chain")):
+        with pytest.raises(SystemExit) as ei:
+            cli.run(argv)
+        assert ei.value.code == 2
+        err = capsys.readouterr().err
+        assert err.startswith(usage), err
+        assert "unrecognized arguments: --bogus" in err
+
+
+def test_sim_peers_writes_a_loadable_hardware_cell(tmp_path):
+    """Issue 8 (demo on protocol peers): `oralnav sim peers --out DIR --json` starts the
+    peers, prints where its configuration is, writes a hardware-cell configuration that
+    loads, and stops cleanly on `q`."""
+    import json
+    import subprocess
+    import sys
+
+    from oralnav.config.daemon import load_config
+
+    cli = "from oralnav.cli.main import main; main()"
+    proc = subprocess.Popen([sys.executable, "-c", cli, "sim", "peers",
+                             "--out", str(tmp_path), "--no-cameras", "--json"],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        doc = json.loads(proc.stdout.readline())
+        cfg = load_config(doc["config"])
+        assert cfg.settings.cell.backend == "hardware"
+        assert cfg.settings.arm.ur.host == doc["ur_host"]
+        assert cfg.settings.effector.modbus.port == doc["modbus_port"]
+        assert cfg.settings.inputs.port == doc["estop"] and not cfg.settings.cameras
+        out, err = proc.communicate("q\n", timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert "peers stopped" in err
