@@ -21,12 +21,13 @@ PY
     fi
     # The Aravis camera backend (PyGObject, built here from source) needs Debian packages;
     # without them oralnav installs without it and its tests are skipped, saying why.
-    local extras="test"
+    # test and bench: the suite runs the benchmarks' quick modes and figure commands.
+    local extras="test,bench"
     if aravis_system_packages; then
-        extras="test,aravis"
+        extras="test,bench,aravis"
     fi
     # Reinstall only when pyproject.toml (or the extras installed) changes.
-    local stamp="$VENV/.oralnav-$(sha1sum pyproject.toml | cut -c1-12)-${extras/,/-}"
+    local stamp="$VENV/.oralnav-$(sha1sum pyproject.toml | cut -c1-12)-${extras//,/-}"
     if [ ! -f "$stamp" ]; then
         echo "dev.sh: installing oralnav[$extras] and its dependencies into $VENV" >&2
         "$VENV/bin/python" -m pip install -q --upgrade pip >&2
@@ -85,6 +86,7 @@ case "$cmd" in
     test)
         setup
         "$VENV/bin/ruff" check .
+        "$VENV/bin/python" -m tests.layers
         exec "$VENV/bin/python" -m pytest "$@"
         ;;
     bench)

@@ -197,7 +197,7 @@ def run_process_ur(seconds: float, settings: LoopSettings,
     """The process placement with the ``ur`` arm backend: every servo goes through the
     driver's pipe to its ur_rtde child and over RTDE to the fake UR controller (a third
     process, 500 Hz), as on a real cell."""
-    from oralnav.sim.peers.ur_controller import FakeURControllerProcess
+    from oralnav.sim.peers.ur import FakeURControllerProcess
 
     home = [*_home()[:3, 3], 0.0, 0.0, 0.0]  # x y z (m), rotation vector (rad)
     with FakeURControllerProcess(f"127.85.{os.getpid() % 250}.1", home=home) as fake:

@@ -11,7 +11,8 @@ random on the pad, two parked grippers on RCM arms, random lighting, blur and no
 procedure is :class:`oralnav.control.needle.procedure.NeedleProcedure` with its default
 settings (suture depth 5 mm at the incision's middle); it gets the incision, the tissue
 normal and the pad's outline, as the seed's vision does. A step counts as a success only
-if the procedure saw it succeed and the truth agrees; the steps after a failed one are
+if the procedure saw it succeed and the truth agrees
+(:func:`oralnav.sim.world.needle_truth.check_truth`); the steps after a failed one are
 not run and count as failed (the paper's rule).
 
 Failures are classified by the first failed step and its cause: a refusal before moving
@@ -84,15 +85,18 @@ def first_failure(results: Sequence[Any]) -> tuple[dict[str, bool | None], dict 
 
 def run_trial(seed: int) -> dict[str, Any]:
     """One trial: the procedure on ``trial_cell(seed)``; its record (JSON-able)."""
+    from oralnav.config.rig import trial_rig
     from oralnav.control.needle.procedure import NeedleProcedure, port_drives, port_pair
     from oralnav.sim.world.needle_trials import CT1, trial_cell
+    from oralnav.sim.world.needle_truth import check_truth
 
     t0 = time.perf_counter()
     # the cell is set up for the suture: its ports chosen together with the procedure's
     # own rules (one arm drives and pulls, the other picks up and hands over)
-    cell, info = trial_cell(seed, drivable=port_drives(CT1), workable=port_pair(CT1))
+    cell, info = trial_cell(seed, rig=trial_rig(), drivable=port_drives(CT1),
+                            workable=port_pair(CT1))
     proc = NeedleProcedure(cell, info.incision, info.surface_normal,
-                           surface_outline=info.surface_outline)
+                           surface_outline=info.surface_outline, truth_check=check_truth)
     results = proc.run_all()
     steps, failure = first_failure(results)
     return {"seed": seed, "steps": steps, "failure": failure,

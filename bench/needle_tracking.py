@@ -63,6 +63,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from oralnav.bench.machine import describe
+from oralnav.config.rig import trial_rig
 from oralnav.control.geometry import invert, make_transform, transform_points
 from oralnav.control.needle.features import NeedleFeatures, feature_maps
 from oralnav.control.needle.model import Needle
@@ -291,7 +292,7 @@ def held_clip(seed: int, frames: int, jaw_width: float | None = None) -> Clip | 
     the needle as planned, the one that leaves the most of the arc visible in the worse
     view wins (a gripper's shaft, 6 mm thick and near the endoscope, can hide half the
     needle), ties going to the earlier in ``GRASP_SHARES``. ``None`` if none does."""
-    scene, reach, info = trial_scene(seed)
+    scene, reach, info = trial_scene(seed, rig=trial_rig())
     if jaw_width is not None:
         scene = replace(scene, grippers=tuple(replace(g, jaw_width=jaw_width)
                                               for g in scene.grippers))
@@ -356,7 +357,7 @@ def edge_on_scene(seed: int, angle_deg: float) -> tuple[Scene, TrialInfo] | None
     viewing ray (clear of the pad), grippers removed, its normal at ``angle_deg`` to the
     viewing ray to its centre: face-on first, turned about an in-plane axis drawn per seed.
     ``None`` if the arc would leave a view or touch the pad."""
-    scene, _, info = trial_scene(seed)
+    scene, _, info = trial_scene(seed, rig=trial_rig())
     nd = scene.needles[0]
     cam = scene.rig[scene.rig.names[0]]
     c0 = nd.T_ref_needle[:3, 3]
@@ -389,7 +390,7 @@ def low_contrast_scene(seed: int, contrast_dn: float) -> tuple[Scene, TrialInfo]
     (specular ``pad - C`` with shininess 1e-6, so ``cos**1e-6 ~ 1``). The metallic shading
     keeps dark rims at half the base level whatever the level, so it cannot go below some
     20 DN of contrast on this pad."""
-    scene, _, info = trial_scene(seed)
+    scene, _, info = trial_scene(seed, rig=trial_rig())
     nd = scene.needles[0]
     level = max(scene.pads[0].level - contrast_dn, 0.0)
     nd = replace(nd, level=0.0, specular=level, shininess=1e-6)
@@ -586,7 +587,7 @@ def particle_sweep(seeds: Sequence[int], frames: int, particles: Sequence[int] =
             single.append(track_clip(clip, single_camera, cameras=[0]))
             # the same trial untouched: the needle free and still on the pad, grippers
             # parked clear of it (the trial as drawn), for comparison with the held one
-            scene, _, tinfo = trial_scene(seed)
+            scene, _, tinfo = trial_scene(seed, rig=trial_rig())
             free.append(track_clip(still_clip(seed, scene, tinfo, frames), single_camera))
         last = runs[particles[-1]][-1]["updates"][-1] if runs[particles[-1]] else None
         _say(f"seed {seed} done ({clip.notes['arm']} arm at {clip.notes['grasp_share']:.2f} "

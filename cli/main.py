@@ -36,6 +36,7 @@ import cv2
 
 from oralnav import __version__
 from oralnav.cli import calibrate, plan
+from oralnav.cli.extras import missing_extra, require_bench_extra
 from oralnav.cli.sheets import SheetError, render_sheet, write_png
 from oralnav.config.daemon import load_config
 from oralnav.config.errors import ConfigError
@@ -381,6 +382,7 @@ def _track_replay(args: argparse.Namespace, tracker, sources: dict[str, Path]) -
 
 # -- oralnav bench --------------------------------------------------------------------
 def cmd_bench(args: argparse.Namespace) -> int:
+    require_bench_extra()
     from oralnav.bench import calibration, control, navigation, planning
 
     bench = {"navigation": navigation, "control": control, "calibration": calibration,
@@ -390,6 +392,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_needle(args: argparse.Namespace) -> int:
+    require_bench_extra()
     from oralnav.bench import needle
 
     if args.trials is not None and args.trials < 1:
@@ -411,6 +414,7 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_faults(args: argparse.Namespace) -> int:
+    require_bench_extra()
     from oralnav.bench import faults
 
     s = faults.summary(faults.main(Path(args.out), quick=args.quick))
@@ -565,6 +569,12 @@ def run(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
+    except ModuleNotFoundError as exc:
+        extra = missing_extra(exc)
+        if extra is None:
+            raise
+        _fail(args, extra, 2)
+        return 2
     except (ConfigError, ControlError, RenderError, SheetError, UsageError,
             calibrate.SampleFileError, FileNotFoundError) as exc:
         _fail(args, str(exc), 2)

@@ -46,7 +46,7 @@ class HardwarePeers:
     def __enter__(self) -> HardwarePeers:
         from oralnav.sim.peers.modbus_drive import ModbusDriveServer
         from oralnav.sim.peers.serial_box import SerialBox
-        from oralnav.sim.peers.ur_controller import FakeURControllerProcess
+        from oralnav.sim.peers.ur import FakeURControllerProcess
 
         self.folder.mkdir(parents=True, exist_ok=True)
         try:

@@ -20,6 +20,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+from oralnav.cli.extras import require_bench_extra
 from oralnav.config.planning import load_planning_scene, save_fpsm
 from oralnav.control.planning.fpsm import (
     DENSE_RAYS,
@@ -40,6 +41,9 @@ def _progress(msg: str) -> None:
 
 def cmd_fpsm(args: argparse.Namespace) -> int:
     from oralnav.config.mesh import load_mesh
+
+    if args.figures:
+        require_bench_extra()
 
     loaded = load_mesh(args.mesh, units=args.units)
     _progress(f"mesh {args.mesh}: {loaded.report.summary()}")
@@ -69,6 +73,8 @@ def cmd_fpsm(args: argparse.Namespace) -> int:
 
 
 def cmd_place(args: argparse.Namespace) -> int:
+    if args.figures:
+        require_bench_extra()
     scene = load_planning_scene(args.scene)
     s = scene.settings
     if args.equation is not None:

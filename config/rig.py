@@ -5,7 +5,9 @@ See docs/formats.md. Lengths in metres, intrinsics in pixels.
 
 from __future__ import annotations
 
+import functools
 import tomllib
+from importlib import resources
 from pathlib import Path
 from typing import Annotated
 
@@ -77,6 +79,23 @@ def rig_from_dict(data: dict, path: str | Path) -> Rig:
 def load_rig(path: str | Path) -> Rig:
     """Read and validate a rig file; raises ``ConfigError`` naming file and key."""
     return rig_from_dict(read_toml(path), path)
+
+
+#: The shipped stereo endoscope that the randomised needle trials are seen by (seed 002's
+#: cell; :func:`oralnav.sim.world.needle_trials.trial_scene` takes it as ``rig``).
+TRIAL_RIG_FILE = Path(str(resources.files("oralnav.config").joinpath(
+    "rigs/stereo_endoscope.toml")))
+
+
+@functools.lru_cache(maxsize=4)
+def _shared_rig(path: str) -> Rig:
+    return load_rig(path)
+
+
+def trial_rig(path: str | Path = TRIAL_RIG_FILE) -> Rig:
+    """The needle trials' rig, read once per file and process: every trial cell shares one
+    :class:`Rig`, so their renderers share its cameras' ray maps (sim/world/render.py)."""
+    return _shared_rig(str(Path(path).resolve()))
 
 
 def rig_to_dict(rig: Rig) -> dict:

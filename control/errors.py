@@ -40,3 +40,8 @@ class NeedleError(ControlError, ValueError):
     """A needle task was refused before any motion: a needle or suture geometry the
     drive cannot follow (suture depth beyond the radius), an unreachable grasp, or a
     tracker that has not converged. The message names the value and the reason."""
+
+
+class StepOrderError(ControlError):
+    """A procedure step was asked for out of turn or is unknown; the daemon answers it
+    with 409."""

@@ -13,10 +13,21 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from oralnav.checks import TransformMessages, rigid_transform
 from oralnav.control.errors import GeometryError
 
 #: Tolerance on ``R^T R - I`` (max abs entry) and on ``det R - 1`` for a proper rotation.
 ROTATION_TOL = 1e-6
+
+# as_transform's wording since before oralnav.checks; a non-numeric T raises numpy's own
+# TypeError/ValueError, as it always did.
+_TRANSFORM_MESSAGES = TransformMessages(
+    not_numbers=None,
+    shape="{what}: expected a 4x4 transform, got shape {shape}",
+    non_finite="{what}: transform has non-finite entries",
+    bottom_row="{what}: bottom row must be [0, 0, 0, 1], got {row}",
+    rotation="{what}: not a proper rotation (|R^T R - I| = {ortho:.2e}, det = {det:.6f})",
+)
 
 
 def as_rotation_matrix(R: np.ndarray | Sequence, *, tol: float = ROTATION_TOL,
@@ -43,17 +54,11 @@ def as_transform(T: np.ndarray | Sequence, *, tol: float = ROTATION_TOL,
     """Return ``T`` as a float 4x4 rigid transform, or raise :class:`GeometryError`.
 
     Checks the shape, finiteness, the bottom row ``[0, 0, 0, 1]`` and that the upper-left
-    3x3 block is a proper rotation within ``tol``.
+    3x3 block is a proper rotation within ``tol`` (``det`` within ``tol`` of 1 too).
+    Not a copy when ``T`` already is a float array.
     """
-    T = np.asarray(T, dtype=float)
-    if T.shape != (4, 4):
-        raise GeometryError(f"{what}: expected a 4x4 transform, got shape {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise GeometryError(f"{what}: transform has non-finite entries")
-    if np.max(np.abs(T[3] - (0.0, 0.0, 0.0, 1.0))) > tol:
-        raise GeometryError(f"{what}: bottom row must be [0, 0, 0, 1], got {T[3].tolist()}")
-    as_rotation_matrix(T[:3, :3], tol=tol, what=what)
-    return T
+    return rigid_transform(T, what, GeometryError, tol=tol, det_tol=tol,
+                           messages=_TRANSFORM_MESSAGES)
 
 
 def make_transform(R: np.ndarray | Rotation | None = None,

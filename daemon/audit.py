@@ -59,6 +59,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from oralnav.daemon.errors import DaemonError
+
 if TYPE_CHECKING:
     from oralnav.config.daemon import ApiSection
 
@@ -89,7 +91,7 @@ RECORD_KEYS = ("time", "id", "phase", "who", "role", "client", "method", "path",
                "status", "result")
 
 
-class AuditError(Exception):
+class AuditError(DaemonError):
     """The audit log cannot take a record; the message says why.
 
     ``record_id``: set when :meth:`AuditLog.intent` failed after its line may have

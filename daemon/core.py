@@ -1,5 +1,5 @@
 """The daemon's core: safety state, the control process, poses and targets, and what the
-REST API asks of them (:class:`~oralnav.daemon.api.Operations`).
+REST API asks of them (``Operations`` in ``daemon/api.py``).
 
 ``DaemonCore.supervise`` is the supervisor task of the anyio task group. At
 ``SUPERVISE_HZ`` it reads the control process's status record, the safety inputs and the
@@ -18,6 +18,12 @@ loop (refused unless READY, with a fresh opener pose and the instrument inside t
 fixture); each supervision tick then commands GUIDE with the patient's model frame
 ``T_B_F = T_B_C @ T_C_OM @ T_OM_F`` from the newest tracked opener pose; ``stop_guide``,
 any latched stop, or a loop that stops on its own end it (HOLD).
+
+The core is the facade over its pieces: the poses live in a
+:class:`~oralnav.daemon.poses.PoseStore`, guided insertion in a
+:class:`~oralnav.daemon.guide_session.GuideSession`, the needle procedure in a
+:class:`~oralnav.daemon.needle_session.NeedleSession`. The core owns the safety state and
+hands each piece what it must know of it.
 """
 
 from __future__ import annotations
@@ -32,14 +38,12 @@ from typing import Any
 import anyio
 import numpy as np
 
-from oralnav.control.errors import ControlError
-from oralnav.control.geometry import as_transform, invert
-from oralnav.daemon.api import ProcedureAction, SutureTarget, jsonable
-from oralnav.daemon.guidance import GuideDraft, GuidePlanError, model_frame, plan_insertion
+from oralnav.daemon.guide_session import GUIDE_POSE, GuideSession
 from oralnav.daemon.needle_session import NeedleSession
+from oralnav.daemon.poses import PoseStore
+from oralnav.daemon.schemas import ProcedureAction, SutureTarget, jsonable
 from oralnav.realtime.control_loop import HIST_BIN_S
 from oralnav.realtime.control_process import ControlPort
-from oralnav.realtime.plan_channel import ChannelError
 from oralnav.realtime.shm import decode_reason
 from oralnav.safety.errors import StateError
 from oralnav.safety.states import LATCHED, SafetyState, SafetySupervisor
@@ -50,13 +54,6 @@ log = logging.getLogger(__name__)
 
 #: How often the supervisor task looks at everything (Hz).
 SUPERVISE_HZ = 50.0
-#: The tracked pose guidance steers by: the opener's marker field in the stereo camera.
-GUIDE_POSE = "T_C_OM"
-#: How long the control loop may take to install a plan after ``start_guide`` (s) before
-#: the start is abandoned, plus :data:`GUIDE_ARM_S_PER_BYTE` per byte of the plan (the
-#: loop reads 64 KiB per period, 32 MB/s at 500 Hz: a 2 MB plan takes about 70 ms).
-GUIDE_ARM_TIMEOUT = 1.0
-GUIDE_ARM_S_PER_BYTE = 1 / 8e6
 
 
 class DaemonCore:
@@ -72,29 +69,22 @@ class DaemonCore:
         self.clock = clock
         self.supervisor = SafetySupervisor(LatchedStop())
         self.supervisor.stop.add_handler(self._stop_robot, name="control loop")
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()     # guards the targets
         self._targets: list[SutureTarget] = []
-        self._poses: dict[str, dict[str, Any]] = {}
-        self._rates: dict[str, float] = {}
-        self._watched: set[str] = set()   # poses whose staleness trips (what steers now)
-        self._steering: set[str] = set()  # those the navigation stage steers by
+        #: the newest tracked poses, the tracking rates and which poses are watched
+        self.pose_store = PoseStore(watchdogs, clock, pinned=self._pinned_poses)
         self._started = clock()
         #: what a running procedure reports (phase, progress), shown in /status
         self.procedure_info: dict[str, Any] = {}
-        # guided insertion; _glock guards these (plan_guide commits from a worker thread)
-        self.T_B_C: np.ndarray | None = None
+        #: guided insertion: the plan, the phase, the plan's way to and from the loop
+        self.guide_session = GuideSession(control, watchdogs, self.pose_store, clock=clock,
+                                          hold=self.hold,
+                                          start_refused=self._guide_start_refused,
+                                          run_refused=self._guide_run_refused)
         if T_B_C is not None:
             self.set_hand_eye(T_B_C)
-        self._glock = threading.RLock()
-        self._draft: GuideDraft | None = None
-        self._guide_phase = "idle"          # "idle", "arming" (plan sent), "active"
-        self._guide_seq = 0                 # the plan message of this insertion
-        self._guide_deadline = 0.0
-        self._guide_since: float | None = None
-        self._guide_by: str | None = None
-        self._guide_end: dict[str, Any] | None = None   # why the last insertion ended
-        self._guide_clear = False           # the loop still holds a plan to remove
-        self.supervisor.stop.add_handler(self._stop_guide, name="guidance")
+        # after the control loop's handler: the loop is told to stop before guidance ends
+        self.supervisor.stop.add_handler(self.guide_session.on_stop, name="guidance")
         self.needle_session = NeedleSession(self._needle_refused)
         #: the control loop's heartbeat watch (``daemon/heartbeat.py``), when the service
         #: runs one; the supervision tick looks at it too
@@ -116,44 +106,31 @@ class DaemonCore:
                      corners: int = 0, sigma_m: float = math.nan,
                      sigma_deg: float = math.nan) -> None:
         """A fresh pose ``T`` (4x4, m) of ``name`` in ``frame``, captured at ``stamp``."""
-        with self._lock:
-            self._poses[name] = {"T": np.array(T, dtype=float), "stamp": float(stamp),
-                                 "frame": frame, "corners": int(corners),
-                                 "sigma_mm": sigma_m * 1e3, "sigma_deg": sigma_deg}
-        if name in self._watched:
-            self.watchdogs.poses.fresh(name, stamp)
-        if math.isfinite(sigma_m) and math.isfinite(sigma_deg):
-            self.watchdogs.covariance.pose(name, sigma_m, sigma_deg)
+        self.pose_store.publish(name, T, stamp, frame=frame, corners=corners,
+                                sigma_m=sigma_m, sigma_deg=sigma_deg)
 
     def watch_poses(self, names: set[str]) -> None:
         """Only these poses' staleness trips from now on (those the current stage steers
         by: a field hidden on purpose, like the effector inside the mouth, is no fault),
         and the opener's while a guided insertion runs."""
-        with self._lock:
-            self._steering = set(names)
-        self._rewatch()
+        self.pose_store.watch(names)
 
-    def _rewatch(self) -> None:
-        with self._lock:
-            names = set(self._steering)
-            if self._guide_phase != "idle":
-                names.add(GUIDE_POSE)
-            dropped = self._watched - names
-            self._watched = names
-        for name in dropped:
-            self.watchdogs.poses.disarm(name)
+    def _pinned_poses(self) -> set[str]:
+        # the opener's staleness trips while an insertion steers by it, whatever the stage
+        return {GUIDE_POSE} if self.guide_session.running else set()
 
     def camera_frame(self, name: str, counter: int) -> None:
-        self.watchdogs.cameras.frame(name, counter, self.clock())
+        """Camera ``name`` delivered frame ``counter`` now (the camera-stall watch)."""
+        self.pose_store.camera_frame(name, counter)
 
     def set_rate(self, name: str, hz: float) -> None:
-        with self._lock:
-            self._rates[name] = float(hz)
+        """The measured rate (Hz) of tracking task ``name``, shown in /status."""
+        self.pose_store.set_rate(name, hz)
 
     def pose(self, name: str) -> dict[str, Any] | None:
-        with self._lock:
-            p = self._poses.get(name)
-            return None if p is None else dict(p)
+        """A copy of the newest pose record of ``name`` (``T`` 4x4 in m, ``stamp`` in s,
+        ``frame``, ...), or None before its first pose."""
+        return self.pose_store.pose(name)
 
     # -- supervisor task -----------------------------------------------------------------
     def supervise_once(self, now: float) -> None:
@@ -181,7 +158,7 @@ class DaemonCore:
             sup.mark_ready(now)
         else:
             sup.mark_not_ready(now, problem)
-        self._guide_tick(now, st)
+        self.guide_session.tick(now, st)
 
     def _health(self, st: np.void | None, now: float) -> str | None:
         if st is None or not self.control.alive:
@@ -249,8 +226,7 @@ class DaemonCore:
             quiet = self.watchdogs.deadline.quiet(self.clock())
             loop.update(quiet_ms=None if quiet is None else quiet * 1e3,
                         last_silence=self.heartbeat.last_trip)
-        with self._lock:
-            rates = dict(self._rates)
+        rates = self.pose_store.rates()
         inputs = None
         if self.inputs is not None:
             ins = self.inputs.state()
@@ -266,17 +242,11 @@ class DaemonCore:
                          "rates_hz": rates,
                          "uptime_s": self.clock() - self._started,
                          "procedure": dict(self.procedure_info),
-                         "guidance": self._guide_status(st)})
+                         "guidance": self.guide_session.status(st)})
 
     def poses(self) -> dict[str, Any]:
         now = self.clock()
-        out: dict[str, Any] = {}
-        with self._lock:
-            items = list(self._poses.items())
-        for name, p in items:
-            out[name] = {"frame": p["frame"], "T": p["T"].tolist(),
-                         "age_s": now - p["stamp"], "corners": p["corners"],
-                         "sigma_mm": p["sigma_mm"], "sigma_deg": p["sigma_deg"]}
+        out: dict[str, Any] = self.pose_store.snapshot(now)
         st = self.control.read_status()
         if st is not None:
             out["tcp"] = {"frame": "B", "T": np.array(st["T_B_tcp"]).tolist(),
@@ -290,7 +260,7 @@ class DaemonCore:
             doc.update(tcp=np.array(st["T_B_tcp"])[:3, 3].tolist(),
                        tcp_speed=np.array(st["tcp_speed"]).tolist(),
                        wrist=np.array(st["wrist"]).tolist(), latched=bool(st["latched"]))
-        doc["guidance"] = self._guide_status(st)
+        doc["guidance"] = self.guide_session.status(st)
         return jsonable(doc)
 
     def estop(self, who: str, reason: str) -> None:
@@ -321,8 +291,8 @@ class DaemonCore:
             if self.supervisor.state in (SafetyState.FAULT, SafetyState.ESTOP) and released:
                 raise StateError(f"cannot reset: the fault condition is still present ({why})")
         self.supervisor.reset(now, who, estop_released=released, faults_cleared=cleared)
-        with self._glock:  # a latch ended any insertion; never let a reset resume one
-            self._end_guide(now, "reset")
+        # a latch ended any insertion; never let a reset resume one
+        self.guide_session.end(now, "reset")
         # HOLD again before the loop may command: a goal written in the instant the stop
         # latched must not be what it follows after the reset
         self.hold()
@@ -335,7 +305,7 @@ class DaemonCore:
         if action == "start":
             if not self._targets:
                 raise StateError("cannot start: no suture targets registered (POST /targets)")
-            if self._guide_phase != "idle":
+            if self.guide_session.running:
                 raise StateError("cannot start the procedure: a guided insertion is running "
                                  "(POST /guide/stop first)")
             sup.start(now, who)
@@ -382,14 +352,21 @@ class DaemonCore:
         T = np.array(st["T_B_tcp"]) if st is not None else np.eye(4)
         self.control.set_goal(T, self.clock(), move=False)
 
-    # -- guided insertion (GUIDE mode) ---------------------------------------------------
+    # -- guided insertion (GUIDE mode): the guide session, the safety state's say ---------
+    @property
+    def T_B_C(self) -> np.ndarray | None:
+        """The stereo camera in the robot base (4x4, m), or None before the calibration."""
+        return self.guide_session.T_B_C
+
+    @T_B_C.setter
+    def T_B_C(self, T_B_C: np.ndarray | None) -> None:
+        # stored as given, unchecked (a test clears it): set_hand_eye is the checked way
+        self.guide_session.T_B_C = T_B_C
+
     def set_hand_eye(self, T_B_C: np.ndarray) -> None:
         """The stereo camera in the robot base (4x4, m): the hand-eye calibration that
         places the tracked opener, hence the patient's model, in the base."""
-        try:
-            self.T_B_C = as_transform(np.asarray(T_B_C, dtype=float), what="T_B_C")
-        except ControlError as exc:
-            raise ValueError(f"hand-eye calibration: {exc}") from None
+        self.guide_session.set_hand_eye(T_B_C)
 
     def plan_guide(self, scene: str, T_OM_F: Any, who: str,
                    seed: int | None = None) -> dict[str, Any]:
@@ -398,24 +375,54 @@ class DaemonCore:
 
         Blocking (the scene may fit a mesh; placement runs the PSO): the API calls it in
         a worker thread. Atomic: any refusal leaves the previous plan in place.
-        :class:`GuidePlanError` (422) for a bad request, scene or plan;
-        :class:`~oralnav.daemon.guidance.NoSafePlacement` (409) when nothing
+        :class:`~oralnav.daemon.guidance.GuidePlanError` (422) for a bad request, scene or
+        plan; :class:`~oralnav.daemon.guidance.NoSafePlacement` (409) when nothing
         collision-free exists; :class:`StateError` (409) while an insertion runs (a plan
         never changes under the operator's hand: stop it first).
         """
-        self._refuse_while_guiding("plan")
-        draft = plan_insertion(scene, T_OM_F, who, seed)
-        try:
-            self.control.check_guide(draft.plan)
-        except ChannelError as exc:
-            raise GuidePlanError(str(exc)) from None
-        with self._glock:
-            self._refuse_while_guiding("plan")  # again: it may have started meanwhile
-            self._draft = draft
-        p = draft.placement
-        log.info("insertion planned by %s from %s: d_T %.1f mm, theta_T %.1f deg", who,
-                 scene, p.d_T * 1e3, math.degrees(p.theta_T))
-        return draft.summary()
+        return self.guide_session.plan(scene, T_OM_F, who, seed)
+
+    def start_guide(self, who: str) -> None:
+        """Send the plan to the control loop; GUIDE follows once the loop has installed it
+        (within a few periods; the supervision tick switches). Refused (StateError,
+        nothing changed) without a plan, unless READY (not latched, no procedure), without
+        the hand-eye calibration or a fresh opener pose, or with the instrument head
+        outside the virtual fixture: the loop never jumps the arm onto it."""
+        self.guide_session.start(who)
+
+    def stop_guide(self, who: str) -> None:
+        """End the insertion (HOLD) and drop the plan, here and in the loop. Never
+        refused: with nothing running it only drops the plan."""
+        self.guide_session.stop(who)
+
+    def guide(self) -> dict[str, Any]:
+        """``GET /guide``: the plan (or None), the phase and the loop's live figures."""
+        return jsonable(self.guide_session.report())
+
+    def _guide_start_refused(self) -> str:
+        """Why the safety state forbids starting an insertion, as the refusal says it (""
+        when it allows one): only from READY, never latched, never beside a procedure."""
+        sup = self.supervisor
+        state = sup.state
+        if state in LATCHED or sup.stop.latched:
+            return f"cannot start guidance while in {state.value}: reset first"
+        if state in (SafetyState.RUNNING, SafetyState.PAUSED):
+            return f"cannot start guidance: a procedure is {state.value}; abort it first"
+        if sup.interrupted is not None:
+            return ("cannot start guidance: a stop interrupted the procedure; resume it or "
+                    "abort it first")
+        if state is not SafetyState.READY:
+            return (f"cannot start guidance while in {state.value} (not ready: "
+                    f"{sup.not_ready_reason or 'no health report yet'})")
+        return ""
+
+    def _guide_run_refused(self) -> str:
+        """Why a running insertion must end now for the safety state ("" while it may go
+        on): anything but READY, or a latched stop."""
+        sup = self.supervisor
+        if sup.state is not SafetyState.READY or sup.stop.latched:
+            return f"safety state {sup.state.value}"
+        return ""
 
     # -- needle procedure (simulated cell) ----------------------------------------------
     def _needle_refused(self) -> str:
@@ -424,7 +431,7 @@ class DaemonCore:
         sup = self.supervisor
         if sup.state in LATCHED or sup.stop.latched:
             return f"the safety state is {sup.state.value}: reset first"
-        if self._guide_phase != "idle":
+        if self.guide_session.running:
             return "a guided insertion is running"
         return ""
 
@@ -436,185 +443,3 @@ class DaemonCore:
 
     def needle_step(self, step: str, who: str) -> dict[str, Any]:
         return jsonable(self.needle_session.run_step(step, who))
-
-    def _refuse_while_guiding(self, what: str) -> None:
-        with self._glock:
-            if self._guide_phase != "idle":
-                raise StateError(f"cannot {what} while a guided insertion is running "
-                                 f"(started by {self._guide_by}); POST /guide/stop first")
-
-    def start_guide(self, who: str) -> None:
-        """Send the plan to the control loop; GUIDE follows once the loop has installed it
-        (within a few periods; the supervision tick switches). Refused (StateError,
-        nothing changed) without a plan, unless READY (not latched, no procedure), without
-        the hand-eye calibration or a fresh opener pose, or with the instrument head
-        outside the virtual fixture: the loop never jumps the arm onto it."""
-        now = self.clock()
-        sup = self.supervisor
-        with self._glock:
-            if self._guide_phase != "idle":
-                raise StateError(f"a guided insertion is already running (started by "
-                                 f"{self._guide_by})")
-            draft = self._draft
-            if draft is None:
-                raise StateError("no insertion plan: POST /guide/plan first")
-            state = sup.state
-            if state in LATCHED or sup.stop.latched:
-                raise StateError(f"cannot start guidance while in {state.value}: reset first")
-            if state in (SafetyState.RUNNING, SafetyState.PAUSED):
-                raise StateError(f"cannot start guidance: a procedure is {state.value}; "
-                                 "abort it first")
-            if sup.interrupted is not None:
-                raise StateError("cannot start guidance: a stop interrupted the procedure; "
-                                 "resume it or abort it first")
-            if state is not SafetyState.READY:
-                raise StateError(f"cannot start guidance while in {state.value} (not ready: "
-                                 f"{sup.not_ready_reason or 'no health report yet'})")
-            st = self.control.read_status()
-            if st is None or not self.control.alive or bool(st["latched"]):
-                raise StateError("cannot start guidance: the control loop is not running "
-                                 "or is stopped")
-            T_B_F, stamp = self._model_frame(draft)
-            age = now - stamp
-            limit = self.watchdogs.poses.limit
-            if age > limit:
-                raise StateError(f"cannot start guidance: the opener pose ({GUIDE_POSE}) is "
-                                 f"{age:.2f} s old (limit {limit:g} s)")
-            fx = draft.plan.fixture
-            T_F_B = invert(T_B_F)
-            p_F = T_F_B[:3, :3] @ np.array(st["T_B_tcp"])[:3, 3] + T_F_B[:3, 3]
-            if not fx.contains(p_F, margin=draft.plan.admittance.wall_tolerance):
-                raise StateError(
-                    f"cannot start guidance: the instrument head is outside the virtual "
-                    f"fixture ({fx.axial(p_F) * 1e3:.1f} mm along the axis from the target, "
-                    f"{fx.radial(p_F) * 1e3:.1f} mm from it, allowed "
-                    f"{fx.allowed_radius(max(fx.axial(p_F), 0.0)) * 1e3:.1f} mm); bring it "
-                    "onto the planned entry path first")
-            try:
-                seq = self.control.set_guide(draft.plan)
-            except ChannelError as exc:
-                raise StateError(f"cannot start guidance: {exc}") from None
-            self._guide_phase, self._guide_seq = "arming", seq
-            self._guide_deadline = (now + GUIDE_ARM_TIMEOUT
-                                    + self.control.guide_bytes * GUIDE_ARM_S_PER_BYTE)
-            self._guide_since, self._guide_by, self._guide_end = now, who, None
-            self._guide_clear = False
-        self._rewatch()
-        self.watchdogs.poses.fresh(GUIDE_POSE, stamp)
-        log.info("guided insertion started by %s (plan message %d)", who, seq)
-
-    def stop_guide(self, who: str) -> None:
-        """End the insertion (HOLD) and drop the plan, here and in the loop. Never
-        refused: with nothing running it only drops the plan."""
-        with self._glock:
-            self._end_guide(self.clock(), f"stopped by {who}")
-            self._draft = None
-            if self._guide_clear:
-                self._clear_loop_plan()
-        log.info("guidance stopped and plan cleared by %s", who)
-
-    def guide(self) -> dict[str, Any]:
-        """``GET /guide``: the plan (or None), the phase and the loop's live figures."""
-        with self._glock:
-            draft = self._draft
-        doc = self._guide_status(self.control.read_status())
-        doc["plan"] = draft.summary() if draft is not None else None
-        return jsonable(doc)
-
-    def _guide_status(self, st: np.void | None) -> dict[str, Any]:
-        with self._glock:
-            running = self._guide_phase != "idle"
-            doc: dict[str, Any] = {"phase": self._guide_phase, "planned": self._draft is not None,
-                                   "started_by": self._guide_by if running else None,
-                                   "since": self._guide_since if running else None,
-                                   "last_end": self._guide_end}
-        if st is not None:
-            doc.update(active=bool(st["guide_active"]),
-                       loop_planned=bool(st["guide_planned"]),
-                       rod_distance_m=float(st["guide_rod_distance"]),
-                       to_target_m=float(st["guide_to_target"]),
-                       lateral_m=float(st["guide_lateral"]))
-        return doc
-
-    def _model_frame(self, draft: GuideDraft) -> tuple[np.ndarray, float]:
-        """``T_B_F`` from the newest opener pose, and that pose's capture time (s)."""
-        if self.T_B_C is None:
-            raise StateError("cannot guide: no hand-eye calibration (T_B_C) to place the "
-                             "patient in the robot base")
-        p = self.pose(GUIDE_POSE)
-        if p is None:
-            raise StateError(f"cannot guide: no pose of the mouth opener ({GUIDE_POSE}) "
-                             "yet; it must be tracked")
-        return model_frame(self.T_B_C, p["T"], draft.T_OM_F), p["stamp"]
-
-    def _guide_tick(self, now: float, st: np.void | None) -> None:
-        """Each supervision tick: switch to GUIDE once the loop has the plan, then publish
-        ``T_B_F``; end the insertion when anything is wrong (the robot holds)."""
-        with self._glock:
-            self.control.flush_guide()
-            if self._guide_clear:
-                self._clear_loop_plan()
-            phase = self._guide_phase
-            if phase == "idle":
-                return
-            sup = self.supervisor
-            why = None
-            if sup.state is not SafetyState.READY or sup.stop.latched:
-                why = f"safety state {sup.state.value}"
-            elif st is None or not self.control.alive:
-                why = "the control loop is not running"
-            elif bool(st["latched"]):
-                why = f"the control loop stopped: {decode_reason(st['stop_reason'])}"
-            if why is None and phase == "arming":
-                reply = self.control.guide_reply(self._guide_seq)
-                if reply == "refused":
-                    why = "the control loop refused the plan (see its log)"
-                elif reply is None:
-                    if now > self._guide_deadline:
-                        why = ("the control loop did not take the plan in time (it "
-                               "stops rather than guide without one)")
-                    else:
-                        return
-                else:
-                    self._guide_phase = "active"
-            if why is None:
-                try:
-                    T_B_F, stamp = self._model_frame(self._draft)
-                except (StateError, ControlError) as exc:  # no opener pose, or a bad one
-                    why = str(exc)
-            if why is not None:
-                self._end_guide(now, why)
-                return
-            # the pose's capture time, not now: a stale opener pose trips the loop's
-            # stale-pose watchdog exactly as a stale goal does in MOVE
-            self.control.set_guide_frame(T_B_F, stamp, near_point=T_B_F[:3, 3])
-
-    def _end_guide(self, now: float, reason: str) -> None:
-        """Hold, and remove the plan from the loop (call with ``_glock``). The daemon
-        keeps its plan unless ``stop_guide`` drops it: after a reset the operator may
-        start again, through every check of ``start_guide``."""
-        if self._guide_phase == "idle":
-            return
-        self._guide_phase = "idle"
-        self._guide_end = {"time": now, "reason": reason, "by": self._guide_by}
-        self._guide_by = None
-        self.hold()
-        self._guide_clear = True
-        self._clear_loop_plan()
-        self._rewatch()
-        log.warning("guided insertion ended: %s", reason)
-
-    def _clear_loop_plan(self) -> None:
-        """Ask the loop to drop its plan; retried at the next tick while the channel is
-        busy. Never blocks (a non-blocking pipe write)."""
-        try:
-            self.control.set_guide(None)
-        except ChannelError:
-            return
-        self._guide_clear = False
-
-    def _stop_guide(self, record: Any) -> None:
-        """Latched-stop handler: any stop ends the insertion at once (HOLD), so that a
-        reset can never resume it. Quick and never blocking, as the stop path requires."""
-        with self._glock:
-            self._end_guide(self.clock(), f"stop: {record.source}: {record.reason}")

@@ -4,9 +4,11 @@ state and results read back (``GET /needle``).
 
 The cell is the simulator's randomised trial cell (``POST /needle/cell``): no needle
 hardware exists to drive yet, and the cell's ground truth gives each step its success
-check. Steps block (they render, track and move for a second or more): the API runs them
-in a worker thread, and one runs at a time. A step refused before moving, a step out of
-turn, a step while the safety state forbids motion, and a second step while one runs are
+check (``oralnav.sim.world.needle_truth``). Steps block (they render, track and move for a
+second or more): the API runs them in a worker thread, and one runs at a time. A step
+refused before moving, a step out of turn (the procedure's
+:class:`~oralnav.control.errors.StepOrderError`, with its message), a step while the safety
+state forbids motion, and a second step while one runs are
 :class:`~oralnav.safety.errors.StateError` (409) and change nothing; a step that ran
 answers its result, failed or not.
 """
@@ -18,6 +20,7 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+from oralnav.control.errors import StepOrderError
 from oralnav.control.needle.procedure import (
     NeedleProcedure,
     ProcedureSettings,
@@ -45,17 +48,20 @@ class NeedleSession:
     def load_trial(self, trial: int, difficulty: float, who: str) -> dict[str, Any]:
         """Replace the cell by simulated trial ``trial`` (a fresh procedure at NG). A bad
         seed or difficulty is the trial's ``CellError`` (a ValueError: 422)."""
+        from oralnav.config.rig import trial_rig
         from oralnav.sim.world.needle_trials import CT1, trial_cell
+        from oralnav.sim.world.needle_truth import check_truth
 
         if not self._lock.acquire(blocking=False):
             raise StateError(f"cannot load a cell while needle step {self._busy} runs")
         try:
             # the cell set up for the suture: ports chosen with this procedure's rules
-            cell, info = trial_cell(int(trial), difficulty=float(difficulty),
+            cell, info = trial_cell(int(trial), rig=trial_rig(), difficulty=float(difficulty),
                                     drivable=port_drives(CT1, self._settings),
                                     workable=port_pair(CT1, self._settings))
             proc = NeedleProcedure(cell, info.incision, info.surface_normal, self._settings,
-                                   surface_outline=info.surface_outline)
+                                   surface_outline=info.surface_outline,
+                                   truth_check=check_truth)
             self._proc = proc
             self._cell_info = {"trial": int(trial), "difficulty": float(difficulty),
                                "loaded_by": who, "incision": info.incision.tolist(),
@@ -77,7 +83,11 @@ class NeedleSession:
             if proc is None:
                 raise StateError("no needle cell: POST /needle/cell first")
             self._busy = step
-            res = proc.run(step)              # StateError when out of turn
+            try:
+                res = proc.run(step)
+            except StepOrderError as exc:
+                # out of turn or unknown: the daemon's 409, with the procedure's words
+                raise StateError(str(exc)) from exc
         finally:
             self._busy = None
             self._lock.release()

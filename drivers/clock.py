@@ -7,12 +7,16 @@ and still produce consistent, reproducible timestamps.
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 from typing import Protocol, runtime_checkable
 
+from oralnav.checks import NumberMessages, finite_number
+
 __all__ = ["Clock", "VirtualClock", "WallClock"]
+
+# One wording for every refused time value; ValueError, as the clocks always raised.
+_SECONDS = NumberMessages.uniform("{what} must be a finite number of seconds, got {value!r}")
 
 
 @runtime_checkable
@@ -42,7 +46,7 @@ class VirtualClock:
     """
 
     def __init__(self, start: float = 0.0) -> None:
-        self._now = _finite(start, "start")
+        self._now = finite_number(start, "start", ValueError, messages=_SECONDS)
         self._lock = threading.Lock()
 
     def now(self) -> float:
@@ -51,7 +55,7 @@ class VirtualClock:
 
     def advance(self, dt: float) -> float:
         """Move forward by ``dt`` >= 0 seconds; return the new time."""
-        dt = _finite(dt, "dt")
+        dt = finite_number(dt, "dt", ValueError, messages=_SECONDS)
         if dt < 0.0:
             raise ValueError(f"dt must be >= 0 s (a clock does not run backwards), got {dt!r}")
         with self._lock:
@@ -60,7 +64,7 @@ class VirtualClock:
 
     def set(self, t: float) -> None:
         """Jump to time ``t`` seconds, which must not be earlier than now."""
-        t = _finite(t, "t")
+        t = finite_number(t, "t", ValueError, messages=_SECONDS)
         with self._lock:
             if t < self._now:
                 raise ValueError(
@@ -71,15 +75,3 @@ class VirtualClock:
 
     def __repr__(self) -> str:
         return f"VirtualClock(now={self.now()!r})"
-
-
-def _finite(value: float, what: str) -> float:
-    if isinstance(value, bool):
-        raise ValueError(f"{what} must be a finite number of seconds, got {value!r}")
-    try:
-        out = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what} must be a finite number of seconds, got {value!r}") from None
-    if not math.isfinite(out):
-        raise ValueError(f"{what} must be a finite number of seconds, got {value!r}")
-    return out

@@ -40,6 +40,9 @@ from typing import Any
 import numpy as np
 
 from oralnav.control.errors import ControlError
+from oralnav.control.guidance.guided_motion import GuidedMotion, GuideStep
+from oralnav.drivers.arm import Arm, ArmState
+from oralnav.drivers.effector import EffectorState, EndEffector
 from oralnav.realtime.shm import SharedRecord, decode_reason, encode_reason
 from oralnav.safety.limits import SpeedLimiter, WorkspaceBox
 from oralnav.safety.watchdogs import DeadlineWatchdog, DriverSilenceWatchdog, StalePoseWatchdog
@@ -157,7 +160,7 @@ class ControlLoop:
     ``limiter`` (a :class:`~oralnav.safety.limits.SpeedLimiter`) steps the setpoint.
     """
 
-    def __init__(self, arm: Any, effector: Any, settings: LoopSettings,
+    def __init__(self, arm: Arm, effector: EndEffector | None, settings: LoopSettings,
                  nav: SharedRecord, cmd: SharedRecord, status: SharedRecord,
                  limiter: SpeedLimiter, clock: Callable[[], float] | None = None) -> None:
         self.arm, self.effector, self.s = arm, effector, settings
@@ -184,8 +187,8 @@ class ControlLoop:
         self._t_motion = 0.0
         self._stop_time = 0.0
         self._stop_reason = ""
-        self._guide: Any = None            # GuidedMotion for GUIDE mode (set_guide)
-        self.last_guide: Any = None        # the last GuideStep, for status and tests
+        self._guide: GuidedMotion | None = None  # for GUIDE mode (set_guide)
+        self.last_guide: GuideStep | None = None  # the last step, for status and tests
         self._guide_active = False
         self._guide_seq = 0
         self._guide_refused = 0
@@ -198,7 +201,7 @@ class ControlLoop:
         return (self._guide is not None and self._guide.started and not self._latched
                 and int(self.nav.read()["mode"]) == GUIDE)
 
-    def set_guide(self, guide: Any, seq: int | None = None) -> bool:
+    def set_guide(self, guide: GuidedMotion | None, seq: int | None = None) -> bool:
         """Install the plan's :class:`~oralnav.control.guidance.guided_motion.GuidedMotion` (None:
         remove it); it starts from the measured TCP on the first GUIDE period. ``seq``
         numbers the request for the status record (default: the next number).
@@ -263,7 +266,7 @@ class ControlLoop:
         # finished how long after this period's end (its deadline); <= 0 is on time
         self._deadline.period_done(self._clock_after(now) - (now - lateness + s.period), now)
 
-    def _trip_reason(self, now: float, arm: Any, wrist: Any, nav: np.void,
+    def _trip_reason(self, now: float, arm: ArmState, wrist: EffectorState | None, nav: np.void,
                      cmd: np.void) -> str | None:
         if int(cmd["stop_count"]) != self._stop_seen:
             self._stop_seen = int(cmd["stop_count"])
@@ -349,7 +352,7 @@ class ControlLoop:
             threading.Thread(target=_await_recovery, args=(device, pending),
                              name=f"recover-{device}", daemon=True).start()
 
-    def _unlatch(self, arm: Any) -> None:
+    def _unlatch(self, arm: ArmState) -> None:
         """The daemon cleared the stop after an authenticated reset: resume from where
         the arm now is (never from the old setpoint)."""
         self._latched = False
@@ -357,7 +360,7 @@ class ControlLoop:
                                           self.s.max_period_lateness)
         self._setpoint = np.array(arm.T_B_tcp, dtype=float)
 
-    def _command(self, now: float, arm: Any, nav: np.void) -> None:
+    def _command(self, now: float, arm: ArmState, nav: np.void) -> None:
         s = self.s
         if self._setpoint is None:
             self._setpoint = np.array(arm.T_B_tcp, dtype=float)
@@ -385,7 +388,7 @@ class ControlLoop:
         self._motion += 1
         self._t_motion = now
 
-    def _guide_goal(self, now: float, arm: Any, nav: np.void) -> np.ndarray | None:
+    def _guide_goal(self, now: float, arm: ArmState, nav: np.void) -> np.ndarray | None:
         """The admittance's setpoint for this period, or None after latching the stop (a
         TCP outside the fixture at the start, bad sensor data, or the rod alarm)."""
         T_B_F = np.array(nav["T_B_F"])
@@ -407,7 +410,7 @@ class ControlLoop:
         self._guide_active = True
         return step.setpoint
 
-    def _arm_fault(self, arm: Any) -> str:
+    def _arm_fault(self, arm: ArmState) -> str:
         """Why the arm cannot obey, in words ("" when it can or nobody knows): a start that
         failed, else the driver's own ``fault`` (a lost link, a stop), while not ready."""
         if arm.ready:
@@ -416,7 +419,8 @@ class ControlLoop:
             return self.start_errors["arm"]
         return getattr(self.arm, "fault", None) or ""
 
-    def _publish(self, now: float, arm: Any, wrist: Any, err: float) -> None:
+    def _publish(self, now: float, arm: ArmState, wrist: EffectorState | None,
+                 err: float) -> None:
         self.status.write(
             t=now, periods=self._periods, T_B_tcp=arm.T_B_tcp, tcp_speed=arm.tcp_speed,
             setpoint=self._setpoint if self._setpoint is not None else arm.T_B_tcp,

@@ -24,11 +24,15 @@ import os
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal, overload
 
 import anyio
 import numpy as np
 
+from oralnav.control.guidance.guided_motion import GuidePlan
+from oralnav.drivers.arm import Arm
+from oralnav.drivers.clock import Clock
+from oralnav.drivers.effector import EndEffector
 from oralnav.realtime.control_loop import (
     CMD_DTYPE,
     GUIDE,
@@ -66,7 +70,11 @@ class ProcessSpec:
     cpu: int | None = None             # pin the loop to this CPU when given
 
 
-def _build(kind: str, spec: DriverSpec, clock: Any) -> Any:
+@overload
+def _build(kind: Literal["arm"], spec: DriverSpec, clock: Clock) -> Arm: ...
+@overload
+def _build(kind: Literal["effector"], spec: DriverSpec, clock: Clock) -> EndEffector: ...
+def _build(kind: str, spec: DriverSpec, clock: Clock) -> Arm | EndEffector:
     if kind == "arm":
         from oralnav.drivers.arm import open_arm as opener
     else:
@@ -132,7 +140,7 @@ def _settle_heap() -> None:
 START_RETRY_S = (1.0, 10.0)
 
 
-def _start_or_retry(device: Any, kind: str, errors: dict[str, str]) -> None:
+def _start_or_retry(device: Arm | EndEffector, kind: str, errors: dict[str, str]) -> None:
     """Start ``device``; one that cannot be reached now (a wrong address, a controller that
     is off, a recipe it refuses) leaves the loop running with the device disconnected (the
     loop latches its stop and the status names it), and a thread keeps trying to start it
@@ -340,7 +348,7 @@ class ControlPort:
         return st is not None and self._guide_sent > max(int(st["guide_seq"]),
                                                          int(st["guide_refused_seq"]))
 
-    def check_guide(self, plan: Any) -> None:
+    def check_guide(self, plan: GuidePlan | None) -> None:
         """Raise :class:`~oralnav.realtime.plan_channel.ChannelError` (a ``RuntimeError``)
         when ``plan`` cannot be sent (too large for the channel). Sends nothing."""
 
@@ -348,7 +356,7 @@ class ControlPort:
         """Write more of a plan message the pipe could not take at once; never blocks.
         The daemon calls it every supervision tick."""
 
-    def set_guide(self, plan: Any) -> int:
+    def set_guide(self, plan: GuidePlan | None) -> int:
         """Send ``plan`` (a :class:`~oralnav.control.guidance.guided_motion.GuidePlan`, or None to
         remove it) to the loop; returns its message number. Never blocks: what the pipe
         does not take now goes with :meth:`flush_guide`. The loop takes it unless a guided
@@ -363,7 +371,7 @@ class ControlPort:
         self._guide_sent = seq
         return seq
 
-    def _deliver(self, seq: int, plan: Any) -> None:
+    def _deliver(self, seq: int, plan: GuidePlan | None) -> None:
         raise NotImplementedError
 
     def read_status(self) -> np.void | None:
@@ -417,14 +425,14 @@ class ControlProcess(ControlPort):
     def alive(self) -> bool:
         return self._proc is not None and self._proc.is_alive()
 
-    def check_guide(self, plan: Any) -> None:
+    def check_guide(self, plan: GuidePlan | None) -> None:
         check_size(len(encode(1, plan)))
 
     def flush_guide(self) -> None:
         if self._plans is not None:
             self._plans.flush()
 
-    def _deliver(self, seq: int, plan: Any) -> None:
+    def _deliver(self, seq: int, plan: GuidePlan | None) -> None:
         if self._plans is None or not self.alive:
             raise ChannelError("the control process is not running")
         frame = encode(seq, plan)
@@ -455,7 +463,7 @@ class InProcessControl(ControlPort):
     deterministic simulation and the tests. ``step(now)`` advances the simulated devices
     by the time since the last step, then runs one loop period."""
 
-    def __init__(self, arm: Any, effector: Any, settings: LoopSettings,
+    def __init__(self, arm: Arm, effector: EndEffector | None, settings: LoopSettings,
                  limiter: SpeedLimiter) -> None:
         super().__init__()
         self._open_records()
@@ -469,7 +477,7 @@ class InProcessControl(ControlPort):
     def alive(self) -> bool:
         return not self._closed
 
-    def _deliver(self, seq: int, plan: Any) -> None:
+    def _deliver(self, seq: int, plan: GuidePlan | None) -> None:
         # what the child does with a message, at once: same rules, no pipe
         if self._closed:
             raise ChannelError("the control loop is closed")

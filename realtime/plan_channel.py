@@ -35,6 +35,8 @@ import select
 import struct
 from typing import Any
 
+from oralnav.realtime.errors import RealtimeError
+
 log = logging.getLogger(__name__)
 
 #: Frame header: sequence number, payload length (bytes).
@@ -49,7 +51,7 @@ DEFAULT_CAPACITY = 65536
 MAX_FRAME = 64 << 20
 
 
-class ChannelError(RuntimeError):
+class ChannelError(RealtimeError, RuntimeError):
     """The plan channel cannot carry a plan now (busy, broken, or the plan too large)."""
 
 

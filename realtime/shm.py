@@ -28,11 +28,13 @@ from typing import Any
 
 import numpy as np
 
+from oralnav.realtime.errors import RealtimeError
+
 #: Bytes kept for a reason string (UTF-8, truncated at a character boundary).
 REASON_BYTES = 240
 
 
-class ShmError(RuntimeError):
+class ShmError(RealtimeError, RuntimeError):
     """A shared record cannot be created, attached or read."""
 
 

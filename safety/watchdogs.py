@@ -21,7 +21,10 @@ import math
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
+from functools import partial
 from typing import Protocol
+
+from oralnav.checks import finite_number, positive_number
 
 from .errors import InputError
 
@@ -43,21 +46,10 @@ class Watchdog(Protocol):
     def next_deadline(self) -> float | None: ...
 
 
-def _finite(x: float, what: str) -> float:
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        raise InputError(f"{what} must be a number, got {x!r}") from None
-    if not math.isfinite(v):
-        raise InputError(f"{what} must be finite, got {x!r}")
-    return v
-
-
-def _positive(x: float, what: str) -> float:
-    v = _finite(x, what)
-    if v <= 0:
-        raise InputError(f"{what} must be positive, got {x!r}")
-    return v
+# The safety layer's number checks: InputError, the default wording, and bools accepted as
+# 1.0/0.0 as they always were here.
+_finite = partial(finite_number, error=InputError, allow_bool=True)
+_positive = partial(positive_number, error=InputError, allow_bool=True)
 
 
 def _name(name: str) -> str:

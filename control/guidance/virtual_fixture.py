@@ -52,6 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+from oralnav import checks
 from oralnav.control.errors import GeometryError, PlanningError
 
 __all__ = ["VirtualFixture"]
@@ -64,25 +65,10 @@ _TINY = 1e-15
 
 def finite_number(x: object, what: str, error: type[Exception] = PlanningError) -> float:
     """``x`` as a finite float (bools refused), or ``error`` naming ``what``."""
-    if isinstance(x, bool):
-        raise error(f"{what} must be a number, got {x!r}")
-    try:
-        v = float(x)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise error(f"{what} must be a number, got {x!r}") from None
-    if not math.isfinite(v):
-        raise error(f"{what} must be finite, got {x!r}")
-    return v
+    return checks.finite_number(x, what, error)
 
 
 _number = finite_number
-
-
-def _positive(x: object, what: str) -> float:
-    v = _number(x, what)
-    if v <= 0.0:
-        raise PlanningError(f"{what} must be positive, got {x!r}")
-    return v
 
 
 def _vector(x: ArrayLike, what: str, error: type[Exception] = PlanningError) -> np.ndarray:
@@ -151,8 +137,8 @@ class VirtualFixture:
             raise PlanningError(f"direction must be a non-zero vector, got {d.tolist()}")
         if abs(n - 1.0) > _UNIT_TOL:
             d = d / n
-        rc = _positive(self.cylinder_radius, "cylinder_radius (m)")
-        lc = _positive(self.cylinder_length, "cylinder_length (m)")
+        rc = checks.positive_number(self.cylinder_radius, "cylinder_radius (m)", PlanningError)
+        lc = checks.positive_number(self.cylinder_length, "cylinder_length (m)", PlanningError)
         try:
             segs = list(self.cones)
         except TypeError:
@@ -166,8 +152,9 @@ class VirtualFixture:
             except (TypeError, ValueError):
                 raise PlanningError(f"cones[{i}] must be a (length_m, end_radius_m) pair, "
                                     f"got {seg!r}") from None
-            length = _positive(length, f"cones[{i}] length (m)")
-            radius = _positive(radius, f"cones[{i}] end_radius (m)")
+            length = checks.positive_number(length, f"cones[{i}] length (m)", PlanningError)
+            radius = checks.positive_number(radius, f"cones[{i}] end_radius (m)",
+                                            PlanningError)
             if radius < r_prev:
                 raise PlanningError(
                     f"cones[{i}] end_radius {radius} m is smaller than the radius it starts "

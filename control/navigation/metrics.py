@@ -14,10 +14,14 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from oralnav.checks import finite_array
 from oralnav.control.errors import ControlError
 from oralnav.control.geometry import as_transform
 
 _MM_PER_M = 1000.0
+
+# The metrics' wording for a sample with NaN or infinite values (tests match on it).
+_NON_FINITE = "{what}: has non-finite values"
 
 
 class MetricsError(ControlError, ValueError):
@@ -33,12 +37,6 @@ def _pose_stack(poses: np.ndarray | Sequence[np.ndarray], what: str) -> np.ndarr
     for i, Ti in enumerate(T):
         as_transform(Ti, what=f"{what}[{i}]")
     return T
-
-
-def _finite(x: np.ndarray, what: str) -> np.ndarray:
-    if not np.all(np.isfinite(x)):
-        raise MetricsError(f"{what}: has non-finite values")
-    return x
 
 
 def _mad(x: np.ndarray, axis: int = 0) -> np.ndarray:
@@ -130,8 +128,8 @@ def tre(p_registered: np.ndarray, p_measured: np.ndarray) -> float:
     ``p_registered`` (N, 3): targets registered with the instrument (``p^c``);
     ``p_measured`` (N, 3): the same targets as the navigation system reports them (``p^t``).
     """
-    a = _finite(np.asarray(p_registered, dtype=float), "p_registered")
-    b = _finite(np.asarray(p_measured, dtype=float), "p_measured")
+    a = finite_array(p_registered, "p_registered", MetricsError, non_finite=_NON_FINITE)
+    b = finite_array(p_measured, "p_measured", MetricsError, non_finite=_NON_FINITE)
     for what, p in (("p_registered", a), ("p_measured", b)):
         if p.ndim != 2 or p.shape[1] != 3:
             raise MetricsError(f"{what}: expected points of shape (N, 3), got {p.shape}")
@@ -151,8 +149,8 @@ def absolute_angular_error(measured_deg: np.ndarray | float,
     difference is wrapped to [-180, 180) first; the seed does not say so, but a yaw of 179
     measured as -179 is 2 degrees off, not 358.
     """
-    m = _finite(np.asarray(measured_deg, dtype=float), "measured_deg")
-    t = _finite(np.asarray(truth_deg, dtype=float), "truth_deg")
+    m = finite_array(measured_deg, "measured_deg", MetricsError, non_finite=_NON_FINITE)
+    t = finite_array(truth_deg, "truth_deg", MetricsError, non_finite=_NON_FINITE)
     try:
         d = m - t
     except ValueError as exc:
@@ -184,8 +182,8 @@ def error_summary(trans_mm: np.ndarray, rot_deg: np.ndarray) -> dict[str, Any]:
     ``{"n": N, "translation_mm": {"median", "mean", "p95", "max"}, "rotation_deg": {...}}``;
     the percentile interpolates linearly (numpy's default).
     """
-    a = _finite(np.asarray(trans_mm, dtype=float), "trans_mm")
-    b = _finite(np.asarray(rot_deg, dtype=float), "rot_deg")
+    a = finite_array(trans_mm, "trans_mm", MetricsError, non_finite=_NON_FINITE)
+    b = finite_array(rot_deg, "rot_deg", MetricsError, non_finite=_NON_FINITE)
     if a.ndim != 1 or a.shape != b.shape or len(a) == 0:
         raise MetricsError(f"trans_mm and rot_deg must be 1-D, equally long and non-empty: "
                            f"shapes {a.shape} and {b.shape}")

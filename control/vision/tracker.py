@@ -28,7 +28,6 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Literal
 
 import cv2
@@ -298,31 +297,6 @@ class Tracker:
             decoder_for(d)  # build code tables now, not in the first frame
         self._body_dictionaries = sorted({b.dictionary for b in bodies})
         self.last_timing = FrameTiming()
-
-    @classmethod
-    def from_files(cls, rig_path: str | Path, fields_path: str | Path | None = None,
-                   method: Method = "nvgba", *,
-                   bodies: Sequence[RigidBody | str | Path | tuple[str, str | Path]] = (),
-                   body_dictionary: str = "DICT_ARUCO_ORIGINAL", **kwargs) -> Tracker:
-        """Build a tracker from a rig TOML, a marker-field TOML (docs/formats.md) and
-        rigid bodies.
-
-        ``fields_path`` may be ``None`` when ``bodies`` are given. Each body is a
-        :class:`RigidBody`, or a peer tag table (millimetres, read by
-        :func:`oralnav.config.rigid_bodies.load_rigid_body` with tags of
-        ``body_dictionary``): a path (the body is named after the file's stem) or a
-        ``(name, path)`` pair.
-        """
-        # Imported here: config builds control objects, so control only reaches into it
-        # for this convenience constructor.
-        from oralnav.config.fields import load_fields
-        from oralnav.config.rig import load_rig
-        from oralnav.config.rigid_bodies import load_rigid_bodies
-
-        rig = load_rig(rig_path)
-        fields = load_fields(fields_path) if fields_path is not None else {}
-        return cls(rig, list(fields.values()), method=method,
-                   bodies=load_rigid_bodies(bodies, body_dictionary), **kwargs)
 
     def reset(self) -> None:
         """Forget every field's last pose: the next frame searches whole images."""

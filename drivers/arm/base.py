@@ -14,10 +14,11 @@ from __future__ import annotations
 
 import abc
 import logging
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from oralnav.checks import NumberMessages, TransformMessages, positive_number, rigid_transform
 
 from ..errors import DriverIOError
 from ..lifecycle import AsyncLifecycle
@@ -29,8 +30,17 @@ log = logging.getLogger(__name__)
 # Tolerance of the rigid-transform check: a pose built from float math (or read from a
 # TOML file with 6-7 digits) is orthonormal to about 1e-6, not to machine precision.
 _RIGID_TOL = 1e-6
-_BOTTOM = np.array([0.0, 0.0, 0.0, 1.0])
-_EYE3 = np.eye(3)
+
+# The arm's wording (tests match on it).
+_POSE_MESSAGES = TransformMessages(
+    not_numbers="{what} must be a 4x4 array of numbers, got {value!r}",
+    shape="{what} must have shape (4, 4), got {shape}",
+    non_finite="{what} has non-finite entries: {entries}",
+    bottom_row="{what} bottom row must be [0, 0, 0, 1], got {row}",
+    rotation="{what} rotation block is not a proper rotation (orthonormal, det +1)",
+)
+_SECONDS = NumberMessages.uniform("{what} must be a finite number of seconds > 0, got {value!r}")
+_M_PER_S2 = NumberMessages.uniform("{what} must be a finite number of m/s^2 > 0, got {value!r}")
 
 
 class ArmCommandError(DriverIOError, ValueError):
@@ -81,29 +91,16 @@ class ArmState:
 
 
 def check_pose(T: object, what: str = "T_B_tcp") -> np.ndarray:
-    """Return ``T`` as a float (4, 4) copy if it is a finite rigid transform.
+    """Return ``T`` as a float (4, 4) copy if it is a finite rigid transform, its bottom row
+    exactly [0, 0, 0, 1].
 
     Raises:
         ArmCommandError: wrong shape, non-finite entries, a bottom row other than
             [0, 0, 0, 1], or a rotation block that is not orthonormal with determinant +1.
     """
-    try:
-        out = np.array(T, dtype=float)
-    except (TypeError, ValueError):
-        raise ArmCommandError(f"{what} must be a 4x4 array of numbers, got {T!r}") from None
-    if out.shape != (4, 4):
-        raise ArmCommandError(f"{what} must have shape (4, 4), got {out.shape}")
-    if not np.isfinite(out).all():
-        raise ArmCommandError(f"{what} has non-finite entries: {out.tolist()}")
-    # Plain max-abs checks: np.allclose costs ~20 us and this runs at the control rate.
-    if np.abs(out[3] - _BOTTOM).max() > _RIGID_TOL:
-        raise ArmCommandError(f"{what} bottom row must be [0, 0, 0, 1], got {out[3].tolist()}")
-    R = out[:3, :3]
-    if np.abs(R.T @ R - _EYE3).max() > _RIGID_TOL or np.linalg.det(R) <= 0.0:
-        raise ArmCommandError(
-            f"{what} rotation block is not a proper rotation (orthonormal, det +1)"
-        )
-    out[3] = [0.0, 0.0, 0.0, 1.0]
+    out = rigid_transform(T, what, ArmCommandError, tol=_RIGID_TOL, copy=True,
+                          messages=_POSE_MESSAGES)
+    out[3] = [0.0, 0.0, 0.0, 1.0]  # within _RIGID_TOL: the arm gets the exact row
     return out
 
 
@@ -117,16 +114,6 @@ def check_twist(twist: object, what: str = "twist") -> np.ndarray:
         raise ArmCommandError(f"{what} must have shape (6,) [vx vy vz wx wy wz], got {out.shape}")
     if not np.isfinite(out).all():
         raise ArmCommandError(f"{what} has non-finite entries: {out.tolist()}")
-    return out
-
-
-def _positive(value: object, what: str, unit: str) -> float:
-    try:
-        out = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        out = math.nan
-    if isinstance(value, bool) or not math.isfinite(out) or out <= 0.0:
-        raise ArmCommandError(f"{what} must be a finite number of {unit} > 0, got {value!r}")
     return out
 
 
@@ -156,14 +143,14 @@ class Arm(AsyncLifecycle, abc.ABC):
         arm cannot obey.
         """
         T = check_pose(T_B_tcp, "T_B_tcp")
-        self._servo(T, _positive(dt, "dt", "seconds"))
+        self._servo(T, positive_number(dt, "dt", ArmCommandError, messages=_SECONDS))
 
     def speed(self, twist: np.ndarray, accel: float) -> None:
         """Move at ``twist`` (6,) [m/s, rad/s], base frame, reached with linear acceleration
         ``accel`` (m/s^2). Like ur-rtde ``speedL``; it lasts until the next command, a stop or
         the watchdog. Raises like :meth:`servo`."""
         v = check_twist(twist, "twist")
-        self._speed(v, _positive(accel, "accel", "m/s^2"))
+        self._speed(v, positive_number(accel, "accel", ArmCommandError, messages=_M_PER_S2))
 
     def stop(self) -> None:
         """Decelerate to a stand-still and hold. Idempotent; never raises, never blocks.

@@ -47,6 +47,7 @@ from scipy.spatial.transform import Rotation
 
 from ..clock import Clock, WallClock
 from ..errors import DriverInitError, DriverIOError
+from ..lifecycle import LifecycleState
 from .base import Arm, ArmCommandError, ArmState, check_pose
 
 __all__ = ["DEFAULT_HOME", "CommandRecord", "SimArm"]
@@ -164,8 +165,7 @@ class SimArm(Arm):
         self._cmd_angular_accel = self.max_angular_accel
         self._last_feed = -math.inf  # last motion command or kick, clock seconds
         # Link and controller flags.
-        self._started = False
-        self._closed = False
+        self._life = LifecycleState()  # changed under _lock
         self._connected = False
         self._protective = False
         self._estop = False
@@ -182,18 +182,16 @@ class SimArm(Arm):
 
     async def start(self) -> None:
         with self._lock:
-            if self._started:
-                raise DriverInitError(
-                    f"arm {self.name!r}: start() called twice (build a new arm after close)"
-                )
-            self._started = True
+            self._life.start(
+                f"arm {self.name!r}: start() called twice (build a new arm after close)"
+            )
             self._connected = True
             self._snap_time = float(self.clock.now())
 
     async def close(self) -> None:
         self.stop()
         with self._lock:
-            self._closed = True
+            self._life.close()
             self._connected = False
 
     # -- state --------------------------------------------------------------------------------
@@ -219,10 +217,9 @@ class SimArm(Arm):
 
     def _refusal(self) -> str | None:
         # Why a motion command cannot be obeyed now, or None. Call under the lock.
-        if not self._started:
-            return "not started"
-        if self._closed:
-            return "closed"
+        reason = self._life.refusal()  # "not started" or "closed"
+        if reason is not None:
+            return reason
         if not self._connected:
             return "disconnected"
         if self._estop:
@@ -260,7 +257,7 @@ class SimArm(Arm):
     def _stop(self) -> None:
         with self._lock:
             self._log.append(CommandRecord(float(self.clock.now()), "stop"))
-            unreachable = self._started and not self._closed and not self._connected
+            unreachable = self._life.running and not self._connected
             if not unreachable and self._mode != "hold":
                 self._mode = "stop"
         if unreachable:
@@ -271,7 +268,7 @@ class SimArm(Arm):
     def kick(self) -> None:
         with self._lock:
             # A stopped (protective / emergency) arm can still be kicked: the link is up.
-            if not self._started or self._closed or not self._connected:
+            if not self._life.running or not self._connected:
                 raise DriverIOError(f"arm {self.name!r}: kick() failed: arm {self._refusal()}")
             self._last_feed = float(self.clock.now())
 
@@ -428,7 +425,7 @@ class SimArm(Arm):
     def reconnect(self) -> None:
         """The link is back (only while started and not closed)."""
         with self._lock:
-            if self._started and not self._closed:
+            if self._life.running:
                 self._connected = True
 
     def freeze(self) -> None:

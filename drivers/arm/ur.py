@@ -73,15 +73,31 @@ import numpy as np
 from ..clock import Clock, WallClock
 from ..errors import DriverError, DriverInitError, DriverIOError
 from .base import Arm, ArmCommandError, ArmState
+from .ur_protocol import (
+    DASHBOARD_PORT,
+    RTDE_HEADER,
+    RTDE_IN_USE,
+    RTDE_NOT_FOUND,
+    RTDE_PORT,
+    RTDE_REQUEST_PROTOCOL_VERSION,
+    RTDE_SETUP_INPUTS,
+    SAFETY_BIT_ESTOP,
+    SAFETY_BIT_PROTECTIVE,
+    SAFETY_BIT_ROBOT_ESTOP,
+    SAFETY_BIT_SYSTEM_ESTOP,
+    SCRIPT_PORT,
+    DashboardCommand,
+    RobotMode,
+    RuntimeState,
+    SafetyMode,
+)
 
 __all__ = ["DASHBOARD_PORT", "RECEIVE_VARIABLES", "RTDE_PORT", "SCRIPT_PORT", "URArm"]
 
 log = logging.getLogger(__name__)
 
-#: Ports ur_rtde uses (fixed in ur_rtde, the control interface's dashboard port included).
-RTDE_PORT = 30004
-SCRIPT_PORT = 30003
-DASHBOARD_PORT = 29999
+# The ports ur_rtde uses, RTDE_PORT, SCRIPT_PORT and DASHBOARD_PORT (re-exported from
+# ur_protocol), are fixed in ur_rtde, the control interface's dashboard port included.
 
 #: What the receive interface streams.
 RECEIVE_VARIABLES = (
@@ -89,19 +105,14 @@ RECEIVE_VARIABLES = (
     "safety_mode", "safety_status_bits", "robot_status_bits", "runtime_state",
 )
 
-# Controller values (UR's RTDE field definitions).
-_ROBOT_MODES = {-1: "no controller", 0: "disconnected", 1: "confirm safety", 2: "booting",
-                3: "power off", 4: "power on", 5: "idle", 6: "backdrive", 7: "running",
-                8: "updating firmware"}
-_ROBOT_RUNNING, _ROBOT_IDLE, _ROBOT_POWER_OFF = 7, 5, 3
-_SAFETY_MODES = {1: "normal", 2: "reduced", 3: "protective stop", 4: "recovery",
-                 5: "safeguard stop", 6: "system emergency stop", 7: "robot emergency stop",
-                 8: "violation", 9: "fault", 10: "validate joint id",
-                 11: "undefined safety mode", 12: "automatic mode safeguard stop",
-                 13: "three position enabling stop"}
-_SAFETY_OK = (1, 2)  # normal, reduced
-_BIT_PROTECTIVE, _BIT_SYSTEM_ESTOP, _BIT_ROBOT_ESTOP, _BIT_ESTOP = 2, 5, 6, 7
-_PLAYING = 2
+# The controller's modes in words, for messages and diagnostics ("power off", "protective
+# stop"), from UR's names (ur_protocol).
+_ROBOT_MODES = {v: n.lower().replace("_", " ") for v, n in RobotMode.NAMES.items()}
+_SAFETY_MODES = {v: n.lower().replace("_", " ") for v, n in SafetyMode.NAMES.items()}
+# this driver has always called mode 13 by its short name (its messages stay as they were)
+_SAFETY_MODES[SafetyMode.SYSTEM_THREE_POSITION_ENABLING_STOP] = "three position enabling stop"
+_SAFETY_OK = (SafetyMode.NORMAL, SafetyMode.REDUCED)  # the control script may run
+_ESTOP_MODES = (SafetyMode.SYSTEM_EMERGENCY_STOP, SafetyMode.ROBOT_EMERGENCY_STOP)
 
 # ur_rtde's argument ranges (rtde_control_interface.h).
 _LOOKAHEAD_RANGE = (0.03, 0.2)
@@ -162,13 +173,14 @@ def _matrix(pose6: np.ndarray) -> np.ndarray:
 
 def _robot_not_ready(robot_mode: int, safety_mode: int, bits: int) -> str | None:
     """Why the control script cannot run now (None: it can)."""
-    if bits >> _BIT_ESTOP & 1 or bits >> _BIT_ROBOT_ESTOP & 1 or bits >> _BIT_SYSTEM_ESTOP & 1:
+    if (bits >> SAFETY_BIT_ESTOP & 1 or bits >> SAFETY_BIT_ROBOT_ESTOP & 1
+            or bits >> SAFETY_BIT_SYSTEM_ESTOP & 1):
         return "emergency stop"
-    if bits >> _BIT_PROTECTIVE & 1 or safety_mode == 3:
+    if bits >> SAFETY_BIT_PROTECTIVE & 1 or safety_mode == SafetyMode.PROTECTIVE_STOP:
         return "protective stop"
     if safety_mode not in _SAFETY_OK:
         return f"safety mode {_SAFETY_MODES.get(safety_mode, safety_mode)}"
-    if robot_mode != _ROBOT_RUNNING:
+    if robot_mode != RobotMode.RUNNING:
         return f"robot mode {_ROBOT_MODES.get(robot_mode, robot_mode)}"
     return None
 
@@ -433,13 +445,14 @@ class _Sample:
 
     @property
     def protective(self) -> bool:
-        return bool(self.safety_bits >> _BIT_PROTECTIVE & 1) or self.safety_mode == 3
+        return (bool(self.safety_bits >> SAFETY_BIT_PROTECTIVE & 1)
+                or self.safety_mode == SafetyMode.PROTECTIVE_STOP)
 
     @property
     def estop(self) -> bool:
         bits = self.safety_bits
-        return bool(bits >> _BIT_ESTOP & 1 or bits >> _BIT_ROBOT_ESTOP & 1
-                    or bits >> _BIT_SYSTEM_ESTOP & 1) or self.safety_mode in (6, 7)
+        return bool(bits >> SAFETY_BIT_ESTOP & 1 or bits >> SAFETY_BIT_ROBOT_ESTOP & 1
+                    or bits >> SAFETY_BIT_SYSTEM_ESTOP & 1) or self.safety_mode in _ESTOP_MODES
 
     @property
     def not_ready(self) -> str | None:
@@ -616,9 +629,10 @@ class URArm(Arm):
                         if not s.recv(256):
                             raise ConnectionError("closed without a greeting")
                     elif port == RTDE_PORT:
-                        s.sendall(struct.pack(">HBH", 5, 86, 2))  # request protocol version 2
+                        # request protocol version 2
+                        s.sendall(struct.pack(">HBH", 5, RTDE_REQUEST_PROTOCOL_VERSION, 2))
                         kind, payload = _recv_message(s)
-                        if kind != 86 or payload[:1] != b"\x01":
+                        if kind != RTDE_REQUEST_PROTOCOL_VERSION or payload[:1] != b"\x01":
                             raise ConnectionError("refused RTDE protocol version 2")
             except (OSError, ConnectionError) as exc:
                 reason = f"no answer within {t:g} s" if isinstance(exc, TimeoutError) else exc
@@ -656,7 +670,7 @@ class URArm(Arm):
             while True:
                 s = self._sample
                 if s is not None and s.control == info["control"] and (
-                        not s.control or s.runtime_state == _PLAYING):
+                        not s.control or s.runtime_state == RuntimeState.PLAYING):
                     break
                 if host.dead or time.monotonic() > deadline:
                     raise _HostDead(f"no data from the UR controller at {self.host}:{RTDE_PORT}"
@@ -708,17 +722,17 @@ class URArm(Arm):
             with socket.create_connection((self.host, RTDE_PORT),
                                           timeout=self.connect_timeout) as s:
                 s.settimeout(self.connect_timeout)
-                s.sendall(struct.pack(">HBH", 5, 86, 2))
+                s.sendall(struct.pack(">HBH", 5, RTDE_REQUEST_PROTOCOL_VERSION, 2))
                 _recv_message(s)
                 body = ",".join(names).encode()
-                s.sendall(struct.pack(">HB", 3 + len(body), 73) + body)
+                s.sendall(RTDE_HEADER.pack(3 + len(body), RTDE_SETUP_INPUTS) + body)
                 kind, payload = _recv_message(s)
         except (OSError, ConnectionError):
             return []
-        if kind != 73:
+        if kind != RTDE_SETUP_INPUTS:
             return []
         types = payload[1:].decode("ascii", "replace").split(",")
-        return [n for n, t in zip(names, types, strict=False) if t in ("IN_USE", "NOT_FOUND")]
+        return [n for n, t in zip(names, types, strict=False) if t in (RTDE_IN_USE, RTDE_NOT_FOUND)]
 
     # -- records from the host ------------------------------------------------------------------
 
@@ -851,7 +865,7 @@ class URArm(Arm):
                 "motion": self._motion,
                 "robot_mode": None if s is None else _ROBOT_MODES.get(s.robot_mode),
                 "safety_mode": None if s is None else _SAFETY_MODES.get(s.safety_mode),
-                "program_running": s is not None and s.runtime_state == _PLAYING,
+                "program_running": s is not None and s.runtime_state == RuntimeState.PLAYING,
                 "controller_time": None if s is None else s.ctrl_time,
                 "link_error": self._link_error,
                 "command_error": self._cmd_error,
@@ -861,7 +875,7 @@ class URArm(Arm):
     def _program_running(self) -> bool:
         # Our control program runs on the controller. Call under the lock.
         s = self._sample
-        return s is not None and s.control and s.runtime_state == _PLAYING
+        return s is not None and s.control and s.runtime_state == RuntimeState.PLAYING
 
     def _link_up(self) -> bool:
         # Call under the lock.
@@ -886,9 +900,9 @@ class URArm(Arm):
             return "in protective stop"
         if not s.control:
             return self._control_error or "without a control interface"
-        if s.robot_mode != _ROBOT_RUNNING:
+        if s.robot_mode != RobotMode.RUNNING:
             return f"not running (robot mode {_ROBOT_MODES.get(s.robot_mode, '?')})"
-        if s.runtime_state != _PLAYING:
+        if s.runtime_state != RuntimeState.PLAYING:
             return ("with its control program stopped (by the RTDE watchdog, a fault or the "
                     "pendant; recover() restarts it)")
         if self._cmd_error is not None:
@@ -1074,18 +1088,18 @@ class URArm(Arm):
             raise DriverIOError(f"arm {self.name!r}: recover(): cannot connect to the dashboard "
                                 f"server at {self.host}:{DASHBOARD_PORT}: {exc}") from exc
         try:
-            self._dash(db.closeSafetyPopup, "close safety popup")
+            self._dash(db.closeSafetyPopup, DashboardCommand.CLOSE_SAFETY_POPUP)
             if unlock and sample.protective:
-                self._dash(db.unlockProtectiveStop, "unlock protective stop")
+                self._dash(db.unlockProtectiveStop, DashboardCommand.UNLOCK_PROTECTIVE_STOP)
                 sample = self._await("the protective stop to clear", timeout,
                                      lambda s: not s.protective)
-            if power_on and sample.robot_mode == _ROBOT_POWER_OFF:
-                self._dash(db.powerOn, "power on")
+            if power_on and sample.robot_mode == RobotMode.POWER_OFF:
+                self._dash(db.powerOn, DashboardCommand.POWER_ON)
                 sample = self._await("power on", timeout,
-                                     lambda s: s.robot_mode in (_ROBOT_IDLE, _ROBOT_RUNNING))
-            if brake_release and sample.robot_mode == _ROBOT_IDLE:
-                self._dash(db.brakeRelease, "brake release")
-                self._await("brake release", timeout, lambda s: s.robot_mode == _ROBOT_RUNNING)
+                                     lambda s: s.robot_mode in (RobotMode.IDLE, RobotMode.RUNNING))
+            if brake_release and sample.robot_mode == RobotMode.IDLE:
+                self._dash(db.brakeRelease, DashboardCommand.BRAKE_RELEASE)
+                self._await("brake release", timeout, lambda s: s.robot_mode == RobotMode.RUNNING)
         finally:
             try:
                 db.disconnect()
@@ -1133,7 +1147,7 @@ class URArm(Arm):
                 raise DriverIOError(f"arm {self.name!r}: recover(): the controller did not take "
                                     f"the control script")
             self._await("the control program to run", timeout,
-                        lambda s: s.control and s.runtime_state == _PLAYING)
+                        lambda s: s.control and s.runtime_state == RuntimeState.PLAYING)
         except (_HostDead, RuntimeError) as exc:
             raise DriverIOError(f"arm {self.name!r}: recover(): starting the control program "
                                 f"failed: {exc}") from exc
@@ -1150,7 +1164,7 @@ class URArm(Arm):
 
 def _recv_message(s: socket.socket) -> tuple[int, bytes]:
     """One RTDE message (type, payload) from a blocking socket."""
-    size, kind = struct.unpack(">HB", _recv_exact(s, 3))
+    size, kind = RTDE_HEADER.unpack(_recv_exact(s, RTDE_HEADER.size))
     return kind, _recv_exact(s, size - 3)
 
 

@@ -57,7 +57,10 @@ import numpy as np
 gi.require_version("Aravis", "0.8")
 from gi.repository import Aravis, GLib  # noqa: E402  (needs require_version first)
 
+from oralnav.checks import NumberMessages, finite_number, positive_number  # noqa: E402
+
 from ..errors import DriverError, DriverInitError, DriverIOError, DriverTimeoutError  # noqa: E402
+from ..lifecycle import LifecycleState  # noqa: E402
 from .base import Camera, CameraFrame  # noqa: E402
 
 __all__ = [
@@ -93,6 +96,11 @@ _GV_WRAP_MARGIN = 4096
 
 # Aravis keeps one process-wide device list; discovery and opening go through it.
 _SDK_LOCK = threading.Lock()
+
+# Wording of the refused settings, one per check (ints and floats only: a setting given as a
+# string is a configuration mistake, not something to parse).
+_POSITIVE = NumberMessages.uniform("{what} must be a finite number > 0, got {value!r}")
+_FINITE = NumberMessages.uniform("{what} must be a finite number, got {value!r}")
 
 # GigE Vision control protocol (GVCP): unicast discovery (the serial number's offset in its
 # acknowledge's payload) and register reads.
@@ -412,9 +420,14 @@ class AravisCamera(Camera):
                                       f"x, y >= 0 and width, height > 0, got {region!r}")
             region = tuple(int(v) for v in region)
         self.region = region
-        self.exposure_us = _positive(exposure_us, "exposure_us", what, allow_none=True)
-        self.gain = _finite(gain, "gain", what)
-        self.frame_rate = _positive(frame_rate, "frame_rate", what, allow_none=True)
+        self.exposure_us = (None if exposure_us is None else positive_number(
+            exposure_us, f"{what}: exposure_us", DriverInitError, numbers_only=True,
+            messages=_POSITIVE))
+        self.gain = (None if gain is None else finite_number(
+            gain, f"{what}: gain", DriverInitError, numbers_only=True, messages=_FINITE))
+        self.frame_rate = (None if frame_rate is None else positive_number(
+            frame_rate, f"{what}: frame_rate", DriverInitError, numbers_only=True,
+            messages=_POSITIVE))
         if not isinstance(trigger, str) or not trigger:
             raise DriverInitError(f"{what}: trigger must be 'off', 'software' or a trigger "
                                   f"source name such as 'Line0', got {trigger!r}")
@@ -431,7 +444,8 @@ class AravisCamera(Camera):
         if isinstance(buffers, bool) or not isinstance(buffers, int) or buffers < 1:
             raise DriverInitError(f"{what}: buffers must be an integer >= 1, got {buffers!r}")
         self.buffers = buffers
-        self.timeout = _positive(timeout, "timeout", what)
+        self.timeout = positive_number(timeout, f"{what}: timeout", DriverInitError,
+                                       numbers_only=True, messages=_POSITIVE)
         if packet_size is not None and (isinstance(packet_size, bool)
                                         or not isinstance(packet_size, int)
                                         or not 576 <= packet_size <= 16384):
@@ -449,7 +463,7 @@ class AravisCamera(Camera):
         self.reconnect_backoff = (lo, hi)
 
         self._lock = threading.Lock()  # the SDK objects below
-        self._state = "new"  # -> starting -> started; closed from any of them
+        self._life = LifecycleState()  # changed under _lock
         self._read_lock: anyio.Lock | None = None
         self._link: _Link | None = None
         self._stale: list[_Link] = []  # links lost, released once the camera answers again
@@ -487,7 +501,7 @@ class AravisCamera(Camera):
     @property
     def connected(self) -> bool:
         """Started, not closed, and the link not lost."""
-        return self._state == "started" and self._lost is None
+        return self._life.running and self._lost is None
 
     @property
     def underruns(self) -> int:
@@ -510,16 +524,12 @@ class AravisCamera(Camera):
 
     async def start(self) -> None:
         with self._lock:
-            if self._state != "new":
-                raise DriverInitError(f"{self._label()}: start() called twice or after "
-                                      "close() (build a new camera)")
-            self._state = "starting"
+            self._life.begin_start(f"{self._label()}: start() called twice or after close() "
+                                   "(build a new camera)")
         self._read_lock = anyio.Lock()
         await anyio.to_thread.run_sync(self._connect, False)
         with self._lock:
-            closed = self._state == "closed"
-            if not closed:
-                self._state = "started"
+            closed = not self._life.finish_start()
         if closed:
             await anyio.to_thread.run_sync(self._release_all)
             raise DriverInitError(f"{self._label()}: closed during start()")
@@ -527,9 +537,8 @@ class AravisCamera(Camera):
 
     async def close(self) -> None:
         with self._lock:
-            if self._state == "closed":
+            if not self._life.close():
                 return
-            self._state = "closed"
         with anyio.CancelScope(shield=True):
             await anyio.to_thread.run_sync(self._release_all)
 
@@ -576,13 +585,8 @@ class AravisCamera(Camera):
         await anyio.to_thread.run_sync(self._fire)
 
     def _check_state(self, during: bool = False) -> None:
-        state = self._state
-        if state == "started":
-            return
-        if state == "closed":
-            raise DriverIOError(f"{self._label()}: "
-                                f"{'closed during read()' if during else 'closed'}")
-        raise DriverIOError(f"{self._label()}: not started")
+        if not self._life.running:  # the label only for the message
+            self._life.check(self._label(), during="read()" if during else None)
 
     def _fire(self) -> None:
         with self._lock:
@@ -753,7 +757,7 @@ class AravisCamera(Camera):
             old.release(stop=True)
         link = self._open(device, target, error)
         with self._lock:
-            if self._state == "closed":
+            if self._life.closed:
                 self._stale.append(link)
                 return
             if reconnecting and self._size is not None and link.size != self._size:
@@ -948,20 +952,3 @@ def _target(device: AravisDevice) -> str:
     if device.protocol == "GigEVision" and device.address:
         return device.address
     return device.device_id
-
-
-def _positive(value: Any, key: str, what: str, allow_none: bool = False) -> float | None:
-    if value is None and allow_none:
-        return None
-    if isinstance(value, bool) or not isinstance(value, int | float) \
-            or not math.isfinite(value) or value <= 0:
-        raise DriverInitError(f"{what}: {key} must be a finite number > 0, got {value!r}")
-    return float(value)
-
-
-def _finite(value: Any, key: str, what: str) -> float | None:
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise DriverInitError(f"{what}: {key} must be a finite number, got {value!r}")
-    return float(value)

@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 
 from ..errors import DriverError, DriverInitError, DriverIOError, EndOfStream
+from ..lifecycle import LifecycleState
 from .base import Camera, CameraFrame, FrameStream
 
 __all__ = [
@@ -359,7 +360,7 @@ class ReplayCamera(Camera):
         self._fps_arg = None if fps is None else float(fps)
         self._recording: _Recording | None = None
         self._lock: anyio.Lock | None = None
-        self._state = "new"  # -> "starting" -> "started"; "closed" from any of them
+        self._life = LifecycleState()  # one event loop: no lock needed
         self._timestamps = np.empty(0)
         self._period = 0.0  # timestamp advance per loop pass, seconds
         self._fps = DEFAULT_FPS
@@ -398,9 +399,7 @@ class ReplayCamera(Camera):
     # -- lifecycle --------------------------------------------------------------------------
 
     async def start(self) -> None:
-        if self._state != "new":
-            raise DriverInitError(f"camera {self.name!r}: start() called twice or after close()")
-        self._state = "starting"
+        self._life.begin_start(f"camera {self.name!r}: start() called twice or after close()")
         self._lock = anyio.Lock()
         recording = self._recording = _Recording(self.path, self.mono)
         first = await anyio.to_thread.run_sync(recording.open, self.start_frame)
@@ -418,7 +417,9 @@ class ReplayCamera(Camera):
         step = float(np.median(np.diff(stamps))) if stamps.size > 1 else 1.0 / self._fps
         self._period = float(stamps[-1] - stamps[self.start_frame]) + step
         self._next = self.start_frame
-        self._state = "started"
+        # False when close() came during the awaits above: it released the recording, and
+        # the camera stays closed
+        self._life.finish_start()
 
     async def read(self) -> CameraFrame:
         lock = self._require_started()
@@ -453,9 +454,8 @@ class ReplayCamera(Camera):
             return frame
 
     async def close(self) -> None:
-        if self._state == "closed":
+        if not self._life.close():
             return
-        self._state = "closed"
         recording, self._recording = self._recording, None
         self._first = None
         if recording is None:
@@ -483,10 +483,9 @@ class ReplayCamera(Camera):
         return self._lock
 
     def _started_recording(self) -> _Recording:
-        if self._state == "closed":
-            raise DriverIOError(f"camera {self.name!r}: closed")
-        if self._state != "started" or self._recording is None:
-            raise DriverIOError(f"camera {self.name!r}: not started")
+        if not self._life.running:  # the label only for the message
+            self._life.check(f"camera {self.name!r}")
+        assert self._recording is not None  # running: start() opened it, only close() drops it
         return self._recording
 
     def __repr__(self) -> str:

@@ -31,6 +31,7 @@ import anyio.to_thread
 import numpy as np
 
 from ..errors import DriverError, DriverInitError, DriverIOError
+from ..lifecycle import LifecycleState
 from .base import Camera, CameraFrame, FrameStream
 
 __all__ = ["FrameSource", "SimCamera", "SimCameraSet"]
@@ -95,7 +96,7 @@ class _Capture:
                 raise DriverInitError(f"size given for unknown camera(s) {sorted(unknown)}")
             self.sizes = {n: _check_size(s, f"camera {n!r}: size") for n, s in sizes.items()}
         self._lock = threading.Lock()
-        self._state = "new"  # new -> started -> closed
+        self._life = LifecycleState()  # changed under _lock
         self._counter = 0
         self._frozen = False
 
@@ -105,11 +106,9 @@ class _Capture:
 
     async def start(self) -> None:
         with self._lock:
-            if self._state != "new":
-                raise DriverInitError(
-                    f"camera {self.label}: start() called twice (build a new camera after close)"
-                )
-            self._state = "starting"
+            self._life.begin_start(
+                f"camera {self.label}: start() called twice (build a new camera after close)"
+            )
         if len(self.sizes) < len(self.names):
             # One probe capture, discarded: its instant is already past when read() comes.
             try:
@@ -119,17 +118,15 @@ class _Capture:
             for name in self.names:
                 self.sizes.setdefault(name, _image_size(images[name]))
         with self._lock:
-            if self._state == "starting":
-                self._state = "started"
+            self._life.finish_start()  # False when close() came during the probe: stays closed
 
     async def read(self) -> dict[str, CameraFrame]:
         while True:
             with self._lock:
-                if self._state != "started":
+                if not self._life.running:
                     raise DriverIOError(
-                        f"camera {self.label}: read() needs start() first and no close()"
-                        if self._state in ("new", "starting")
-                        else f"camera {self.label}: read() after close()"
+                        f"camera {self.label}: read() after close()" if self._life.closed
+                        else f"camera {self.label}: read() needs start() first and no close()"
                     )
                 frozen = self._frozen
             if not frozen:
@@ -138,7 +135,7 @@ class _Capture:
         images, timestamp = await self._capture()
         frames: dict[str, CameraFrame] = {}
         with self._lock:
-            if self._state != "started":
+            if not self._life.running:
                 raise DriverIOError(f"camera {self.label}: closed during read()")
             for name in self.names:
                 size = _image_size(images[name])
@@ -164,7 +161,7 @@ class _Capture:
 
     def close(self) -> None:
         with self._lock:
-            self._state = "closed"
+            self._life.close()
 
     def freeze(self) -> None:
         with self._lock:

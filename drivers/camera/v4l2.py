@@ -37,7 +37,10 @@ import anyio.to_thread
 import cv2
 import numpy as np
 
+from oralnav.checks import NumberMessages, positive_number
+
 from ..errors import DriverInitError, DriverIOError, DriverTimeoutError
+from ..lifecycle import LifecycleState
 from .base import Camera, CameraFrame
 
 __all__ = ["V4L2Camera", "device_holders", "diagnose_device", "video_devices"]
@@ -55,6 +58,9 @@ _CAP_DEVICE_CAPS = 0x80000000
 _EXPOSURE_UNIT_US = 100.0
 _AUTO_EXPOSURE_MANUAL = 1
 _AUTO_EXPOSURE_AUTO = 3
+# Wording of a refused positive setting (ints and floats only: a setting given as a string
+# is a configuration mistake, not something to parse).
+_POSITIVE = NumberMessages.uniform("{what} must be a finite number > 0, got {value!r}")
 
 
 def video_devices() -> list[str]:
@@ -206,8 +212,11 @@ class V4L2Camera(Camera):
                            for v in size)):
             raise DriverInitError(f"{what}: size must be (width, height) px > 0, got {size!r}")
         self.size_request = None if size is None else (int(size[0]), int(size[1]))
-        self.fps = _positive(fps, "fps", what, allow_none=True)
-        self.exposure_us = _positive(exposure_us, "exposure_us", what, allow_none=True)
+        self.fps = (None if fps is None else positive_number(
+            fps, f"{what}: fps", DriverInitError, numbers_only=True, messages=_POSITIVE))
+        self.exposure_us = (None if exposure_us is None else positive_number(
+            exposure_us, f"{what}: exposure_us", DriverInitError, numbers_only=True,
+            messages=_POSITIVE))
         if auto_exposure is not None and not isinstance(auto_exposure, bool):
             raise DriverInitError(f"{what}: auto_exposure must be True, False or None, "
                                   f"got {auto_exposure!r}")
@@ -220,13 +229,16 @@ class V4L2Camera(Camera):
                                     or buffers < 1):
             raise DriverInitError(f"{what}: buffers must be an integer >= 1, got {buffers!r}")
         self.buffers = buffers
-        self.timeout = _positive(timeout, "timeout", what)
-        self.reopen_interval = _positive(reopen_interval, "reopen_interval", what)
+        self.timeout = positive_number(timeout, f"{what}: timeout", DriverInitError,
+                                       numbers_only=True, messages=_POSITIVE)
+        self.reopen_interval = positive_number(reopen_interval, f"{what}: reopen_interval",
+                                               DriverInitError, numbers_only=True,
+                                               messages=_POSITIVE)
         self.applied: dict[str, Any] = {}
         self._cap: Any = None
         self._lock = threading.Lock()  # the capture object
         self._read_lock: anyio.Lock | None = None
-        self._state = "new"  # -> starting -> started; closed from any of them
+        self._life = LifecycleState()  # changed under _lock
         self._counter = 0
         self._last_stamp = -math.inf
         self._lost: str | None = None
@@ -240,23 +252,20 @@ class V4L2Camera(Camera):
 
     async def start(self) -> None:
         with self._lock:
-            if self._state != "new":
-                raise DriverInitError(f"{self._label()}: start() called twice or after "
-                                      "close() (build a new camera)")
-            self._state = "starting"
+            self._life.begin_start(f"{self._label()}: start() called twice or after close() "
+                                   "(build a new camera)")
         self._read_lock = anyio.Lock()
         cap, size = await anyio.to_thread.run_sync(self._open, DriverInitError)
         with self._lock:
-            if self._state == "closed":
+            if not self._life.finish_start():
                 cap.release()
                 raise DriverInitError(f"{self._label()}: closed during start()")
-            self._cap, self._size, self._state = cap, size, "started"
+            self._cap, self._size = cap, size
 
     async def close(self) -> None:
         with self._lock:
-            if self._state == "closed":
+            if not self._life.close():
                 return
-            self._state = "closed"
         with anyio.CancelScope(shield=True):
             await anyio.to_thread.run_sync(self._release)
 
@@ -351,12 +360,8 @@ class V4L2Camera(Camera):
             return self._frame(image, stamp_ms)
 
     def _check_state(self, during: bool = False) -> None:
-        if self._state == "started":
-            return
-        if self._state == "closed":
-            raise DriverIOError(f"{self._label()}: "
-                                f"{'closed during read()' if during else 'closed'}")
-        raise DriverIOError(f"{self._label()}: not started")
+        if not self._life.running:  # the label only for the message
+            self._life.check(self._label(), during="read()" if during else None)
 
     def _grab(self) -> tuple[np.ndarray, float] | None:
         with self._lock:
@@ -408,7 +413,7 @@ class V4L2Camera(Camera):
             self._next_open = time.monotonic() + self.reopen_interval
             raise
         with self._lock:
-            if self._state == "closed":
+            if self._life.closed:
                 cap.release()
                 raise DriverIOError(f"{self._label()}: closed during read()")
             if size != self._size:
@@ -428,12 +433,3 @@ class V4L2Camera(Camera):
 def _fourcc_text(value: float) -> str:
     code = int(value)
     return "".join(chr((code >> (8 * i)) & 0xFF) for i in range(4))
-
-
-def _positive(value: Any, key: str, what: str, allow_none: bool = False) -> float | None:
-    if value is None and allow_none:
-        return None
-    if isinstance(value, bool) or not isinstance(value, int | float) \
-            or not math.isfinite(value) or value <= 0:
-        raise DriverInitError(f"{what}: {key} must be a finite number > 0, got {value!r}")
-    return float(value)

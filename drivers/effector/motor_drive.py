@@ -38,6 +38,7 @@ import numpy as np
 
 from ..clock import Clock, WallClock
 from ..errors import DriverError, DriverInitError, DriverIOError
+from ..lifecycle import LifecycleState
 from .base import EffectorState, EndEffector
 from .kinematics import WristKinematics
 
@@ -116,7 +117,7 @@ class MotorDriveEffector(EndEffector):
         self._quit = threading.Event()
         self._reset_wanted = threading.Event()
         self._thread: threading.Thread | None = None
-        self._started = False
+        self._life = LifecycleState()  # changed under _lock; _quit tells the thread
         self._link = False                          # the thread holds an open link
         self._target: np.ndarray | None = None      # counts to send; None: hold
         self._counts: np.ndarray | None = None      # the latest reading
@@ -141,7 +142,7 @@ class MotorDriveEffector(EndEffector):
         now = float(self.clock.now())
         with self._lock:
             counts, t = self._counts, self._time
-            connected = self._started and not self._quit.is_set() and self._link \
+            connected = self._life.running and self._link \
                 and counts is not None
             fault = self._drive_fault
             if connected and t is not None and now - t > self.silence_timeout:
@@ -170,10 +171,9 @@ class MotorDriveEffector(EndEffector):
             self._target = None if self._counts is None else self._counts.copy()
 
     def _refusal(self) -> str | None:
-        if not self._started:
-            return "not started"
-        if self._quit.is_set():
-            return "closed"
+        reason = self._life.refusal()  # "not started" or "closed"
+        if reason is not None:
+            return reason
         if not self._link or self._counts is None:
             return f"disconnected ({self._link_fault or 'no reading yet'})"
         if self._drive_fault is not None:
@@ -188,10 +188,9 @@ class MotorDriveEffector(EndEffector):
 
     async def start(self) -> None:
         with self._lock:
-            if self._started:
-                raise DriverInitError(f"effector {self.name!r}: start() called twice "
-                                      "(build a new one after close)")
-            self._started = True
+            # running at once: the thread reports the link's faults from here on
+            self._life.start(f"effector {self.name!r}: start() called twice "
+                             "(build a new one after close)")
         self._thread = threading.Thread(target=self._run, name=f"drive-{self.name}",
                                         daemon=True)
         self._thread.start()
@@ -213,6 +212,8 @@ class MotorDriveEffector(EndEffector):
         self.stop()
         if self._thread is not None and self._link:
             await anyio.sleep(2 * self.period)  # let the hold reach the drive
+        with self._lock:
+            self._life.close()
         self._quit.set()
         thread, self._thread = self._thread, None
         if thread is not None:

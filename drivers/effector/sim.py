@@ -19,6 +19,7 @@ import numpy as np
 
 from ..clock import Clock, WallClock
 from ..errors import DriverInitError, DriverIOError
+from ..lifecycle import LifecycleState
 from .base import EffectorState, EndEffector
 from .kinematics import JOINTS, WristKinematics
 
@@ -85,8 +86,7 @@ class SimEffector(EndEffector):
         self._lock = threading.Lock()
         self._q = q0
         self._target = q0.copy()
-        self._started = False
-        self._closed = False
+        self._life = LifecycleState()  # changed under _lock
         self._connected = False
         self._fault: str | None = None
         self._silent = False
@@ -96,18 +96,16 @@ class SimEffector(EndEffector):
 
     async def start(self) -> None:
         with self._lock:
-            if self._started:
-                raise DriverInitError(
-                    f"effector {self.name!r}: start() called twice (build a new one after close)"
-                )
-            self._started = True
+            self._life.start(
+                f"effector {self.name!r}: start() called twice (build a new one after close)"
+            )
             self._connected = True
             self._snap_time = float(self.clock.now())
 
     async def close(self) -> None:
         self.stop()
         with self._lock:
-            self._closed = True
+            self._life.close()
             self._connected = False
 
     def state(self) -> EffectorState:
@@ -137,17 +135,16 @@ class SimEffector(EndEffector):
     def _stop(self) -> None:
         with self._lock:
             self._log.append(CommandRecord(float(self.clock.now()), "stop"))
-            unreachable = self._started and not self._closed and not self._connected
+            unreachable = self._life.running and not self._connected
             if not unreachable:
                 self._target = self._q.copy()
         if unreachable:  # logged outside the lock: a log handler may do slow I/O
             log.warning("effector %r: stop() while disconnected", self.name)
 
     def _refusal(self) -> str | None:
-        if not self._started:
-            return "not started"
-        if self._closed:
-            return "closed"
+        reason = self._life.refusal()  # "not started" or "closed"
+        if reason is not None:
+            return reason
         if not self._connected:
             return "disconnected"
         if self._fault is not None:
@@ -190,5 +187,5 @@ class SimEffector(EndEffector):
         with self._lock:
             self._silent = False
             self._fault = None
-            if self._started and not self._closed:
+            if self._life.running:
                 self._connected = True

@@ -37,6 +37,7 @@ import serial
 
 from ..clock import Clock, WallClock
 from ..errors import DriverInitError
+from ..lifecycle import LifecycleState
 from .base import InputState, SafetyInputs
 
 __all__ = ["MAX_LINE", "SerialInputs", "StatusLine", "encode_line", "parse_line"]
@@ -146,7 +147,7 @@ class SerialInputs(SafetyInputs):
         self._wake = threading.Event()  # set by close(): the reader thread leaves
         self._thread: threading.Thread | None = None
         self._ser: serial.Serial | None = None
-        self._started = False
+        self._life = LifecycleState()  # changed under _lock; _wake tells the thread
         # what the reader thread learnt (under _lock)
         self._open = False
         self._last: StatusLine | None = None
@@ -162,10 +163,9 @@ class SerialInputs(SafetyInputs):
     # -- lifecycle ---------------------------------------------------------------------
     async def start(self) -> None:
         with self._lock:
-            if self._started:
-                raise DriverInitError(
-                    f"inputs {self.name!r}: start() called twice (build new ones after close)")
-            self._started = True
+            # running at once: the reader thread reports the link's faults from here on
+            self._life.start(
+                f"inputs {self.name!r}: start() called twice (build new ones after close)")
         try:
             self._open_port()
         except serial.SerialException as exc:
@@ -188,6 +188,8 @@ class SerialInputs(SafetyInputs):
             time.sleep(0.005)
 
     async def close(self) -> None:
+        with self._lock:
+            self._life.close()
         self._wake.set()
         thread, self._thread = self._thread, None
         if thread is not None:
@@ -199,16 +201,14 @@ class SerialInputs(SafetyInputs):
         now = float(self.clock.now())
         with self._lock:
             last, t, fault = self._last, self._last_time, self._fault
-            connected = (self._open and not self._wake.is_set() and last is not None
+            connected = (self._open and self._life.running and last is not None
                          and self._streak >= self.recover_lines)
             if connected and t is not None and now - t > self.heartbeat_timeout:
                 connected = False
                 fault = (f"serial line {self.port} silent for {now - t:.3f} s "
                          f"(heartbeat limit {self.heartbeat_timeout:.3f} s)")
-            if not self._started:
-                fault = "not started"
-            elif self._wake.is_set():
-                fault = "closed"
+            if not self._life.running:
+                fault = self._life.refusal()  # "not started" or "closed"
             if not connected and fault is None:
                 fault = self._waiting(last)
         return InputState(

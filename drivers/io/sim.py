@@ -12,6 +12,7 @@ import threading
 
 from ..clock import Clock, WallClock
 from ..errors import DriverInitError
+from ..lifecycle import LifecycleState
 from .base import InputState, SafetyInputs
 
 __all__ = ["SimInputs"]
@@ -31,8 +32,7 @@ class SimInputs(SafetyInputs):
         if not callable(getattr(self.clock, "now", None)):
             raise DriverInitError(f"clock must have now() -> seconds, got {clock!r}")
         self._lock = threading.Lock()
-        self._started = False
-        self._closed = False
+        self._life = LifecycleState()  # changed under _lock
         self._link = True  # False after inject_disconnect()
         self._estop = False
         self._pedal = False
@@ -40,15 +40,13 @@ class SimInputs(SafetyInputs):
 
     async def start(self) -> None:
         with self._lock:
-            if self._started:
-                raise DriverInitError(
-                    f"inputs {self.name!r}: start() called twice (build new ones after close)"
-                )
-            self._started = True
+            self._life.start(
+                f"inputs {self.name!r}: start() called twice (build new ones after close)"
+            )
 
     async def close(self) -> None:
         with self._lock:
-            self._closed = True
+            self._life.close()
 
     def _read(self) -> InputState:
         with self._lock:
@@ -61,7 +59,7 @@ class SimInputs(SafetyInputs):
             timestamp=float(self.clock.now()),
             estop_pressed=self._estop,
             pedal_pressed=self._pedal,
-            connected=self._started and not self._closed and self._link,
+            connected=self._life.running and self._link,
         )
 
     def press_estop(self) -> None:

@@ -21,6 +21,8 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator
 
+from oralnav.sim.errors import SimError
+
 __all__ = ["FAKE", "GVCP_PORT", "FakeGvCamera", "NoLoopbackAddress", "loopback_address",
            "running_fakes"]
 
@@ -28,7 +30,7 @@ FAKE = "arv-fake-gv-camera-0.8"
 GVCP_PORT = 3956
 
 
-class NoLoopbackAddress(RuntimeError):
+class NoLoopbackAddress(SimError, RuntimeError):
     """No loopback address with a free GVCP port can be had (not root, 127.0.0.1 taken)."""
 
 

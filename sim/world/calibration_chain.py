@@ -49,6 +49,7 @@ from oralnav.control.calibration.pivot import PivotResult, pivot_calibration
 from oralnav.control.geometry import invert, make_transform, transform_points
 from oralnav.control.navigation.chains import extraoral_T_B_E0
 from oralnav.control.vision.markers import MarkerField, PlaneSurface
+from oralnav.sim.errors import SimError
 from oralnav.sim.world.cell import CellConfig
 from oralnav.sim.world.measure import measure_pose
 
@@ -67,7 +68,7 @@ BOARD = MarkerField(name="board", dictionary="DICT_4X4_1000", squares=(7, 5), sq
                     marker=0.0022, first_id=400, surface=PlaneSurface())
 
 
-class MeasurementLost(RuntimeError):
+class MeasurementLost(SimError, RuntimeError):
     """A planned sample could not be measured (the field left the view) too many times."""
 
 

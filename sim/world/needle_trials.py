@@ -51,27 +51,21 @@ drawn first, so a seed gives the same layout at every difficulty.
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from oralnav.config.rig import load_rig
 from oralnav.control.geometry import make_transform, transform_points
 from oralnav.control.needle.model import Needle
 from oralnav.control.vision.camera import Rig
 from oralnav.sim.world.needle_cell import ArmReach, CellError, NeedleCell
 from oralnav.sim.world.scene import Gripper, Imaging, NeedleObject, Scene, TissuePad
 
-__all__ = ["RIG_FILE", "PairCheck", "PortCheck", "TrialInfo", "trial_cell", "trial_scene"]
-
-#: The stereo endoscope the trials are seen by.
-RIG_FILE = Path(__file__).resolve().parents[2] / "config" / "rigs" / "stereo_endoscope.toml"
+__all__ = ["PairCheck", "PortCheck", "TrialInfo", "trial_cell", "trial_scene"]
 
 PAD_SIZE = (0.070, 0.060)
 CT1 = Needle(radius=0.013, wire_diameter=0.001, arc=math.pi)
@@ -148,12 +142,6 @@ class TrialInfo:
                                     else self.surface_outline.tolist())}
 
 
-@functools.lru_cache(maxsize=4)
-def _rig(path: str) -> Rig:
-    # one rig object per file: renderers share its cameras' ray maps (oralnav.sim.world.render)
-    return load_rig(path)
-
-
 def _r(v: float | np.ndarray, nd: int = 6) -> Any:
     """Rounded plain Python numbers for the JSON record."""
     a = np.round(np.asarray(v, dtype=float), nd)
@@ -200,11 +188,13 @@ def _gripper_clear(rig: Rig, T_ref_tool: np.ndarray, pts_ref: np.ndarray) -> boo
     return True
 
 
-def trial_scene(seed: int, *, difficulty: float = 1.0, rig_file: str | Path = RIG_FILE,
+def trial_scene(seed: int, *, rig: Rig, difficulty: float = 1.0,
                 drivable: PortCheck | None = None, workable: PairCheck | None = None
                 ) -> tuple[Scene, dict[str, ArmReach], TrialInfo]:
     """The scene, the arms' reach and the record of trial ``seed`` (see the module
-    docstring); :func:`trial_cell` builds the cell from them. ``drivable(reach,
+    docstring), seen by the stereo endoscope ``rig`` (the shipped one is
+    :func:`oralnav.config.rig.trial_rig`; the draw depends on it, so the same seed with the
+    same rig is the same trial); :func:`trial_cell` builds the cell from them. ``drivable(reach,
     incision, normal) -> bool``: entry port selection (the module docstring); without it
     each arm takes the one port site it draws. ``workable`` (with ``drivable`` only):
     the two ports are chosen together, the first pair of sites it accepts."""
@@ -215,7 +205,6 @@ def trial_scene(seed: int, *, difficulty: float = 1.0, rig_file: str | Path = RI
         raise CellError(f"trial seed must be an integer in [0, 2^63), got {seed!r}")
     if not (math.isfinite(difficulty) and 0.0 <= difficulty <= 1.0):
         raise CellError(f"difficulty must be in [0, 1], got {difficulty}")
-    rig = _rig(str(Path(rig_file).resolve()))
     rng = np.random.default_rng(int(seed))
     D = float(difficulty)
     u = rng.uniform
@@ -259,13 +248,14 @@ def _outline(T_ref_pad: np.ndarray) -> np.ndarray:
         [[-sx, -sy, 0.0], [sx, -sy, 0.0], [sx, sy, 0.0], [-sx, sy, 0.0]]) / 2)
 
 
-def trial_cell(seed: int, *, difficulty: float = 1.0, drivable: PortCheck | None = None,
+def trial_cell(seed: int, *, rig: Rig, difficulty: float = 1.0,
+               drivable: PortCheck | None = None,
                workable: PairCheck | None = None,
                **options) -> tuple[NeedleCell, TrialInfo]:
     """A randomised two-arm needle cell for trial ``seed`` and what was drawn, its ports
     chosen with ``drivable`` (:func:`trial_scene`); ``options`` go to :class:`NeedleCell`
     (e.g. ``kinematic_error``)."""
-    scene, reach, info = trial_scene(seed, difficulty=difficulty, drivable=drivable,
+    scene, reach, info = trial_scene(seed, rig=rig, difficulty=difficulty, drivable=drivable,
                                      workable=workable)
     return NeedleCell(scene, reach, **options), info
 

@@ -50,6 +50,7 @@ from scipy.spatial.transform import Rotation
 from oralnav.control.geometry import transform_points
 from oralnav.control.vision.camera import CameraModel
 from oralnav.control.vision.markers import CylinderSurface, MarkerField, PlaneSurface
+from oralnav.sim.errors import SimError
 from oralnav.sim.world.scene import Gripper, Imaging, NeedleObject, Placement, Rod, Scene, TissuePad
 
 #: Finest texture: pixels per chessboard square. Coarser mip levels halve it down to 4.
@@ -66,7 +67,7 @@ SAGITTA_PX = 0.05
 NEAR = 1e-3
 
 
-class RenderError(ValueError):
+class RenderError(SimError, ValueError):
     """A scene cannot be rendered as asked (unknown placement, a points-only field...)."""
 
 

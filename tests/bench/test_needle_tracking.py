@@ -10,6 +10,7 @@ import math
 import numpy as np
 
 from oralnav.bench import needle_tracking as nt
+from oralnav.config.rig import trial_rig
 
 
 def test_tiny_run_writes_the_tracking_chart(tmp_path):
@@ -52,7 +53,7 @@ def test_pose_errors_forgive_only_the_twin_in_the_outline_angle():
     """Issue 7, error measure: the error against the truth is the centre distance (mm) and
     the rotation angle (deg); the base/tip twin is 180 degrees off but its outline angle is
     0, and the image error of a pose 1 mm off is a few pixels."""
-    scene, _, _ = nt.trial_scene(0)
+    scene, _, _ = nt.trial_scene(0, rig=trial_rig())
     nd = scene.needles[0]
     cam = scene.rig[scene.rig.names[0]]
     T = nd.T_ref_needle

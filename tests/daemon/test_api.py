@@ -24,11 +24,12 @@ import pytest
 import websockets
 
 from oralnav.daemon import audit as audit_mod
-from oralnav.daemon.api import SutureTarget, build_app, jsonable, serve
+from oralnav.daemon.api import build_app, serve
 from oralnav.daemon.api_gate import BODY_LIMITS, DEFAULT_LIMIT
 from oralnav.daemon.audit import AuditLog
 from oralnav.daemon.auth import TokenStore
 from oralnav.daemon.guidance import GuidePlanError
+from oralnav.daemon.schemas import SutureTarget, jsonable
 from oralnav.safety.errors import LimitError, StateError
 
 

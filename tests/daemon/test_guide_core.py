@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from oralnav.config.daemon import load_config
-from oralnav.daemon.api import SutureTarget
 from oralnav.daemon.core import GUIDE_POSE, DaemonCore
 from oralnav.daemon.guidance import GuidePlanError, NoSafePlacement, plan_insertion
+from oralnav.daemon.schemas import SutureTarget
 from oralnav.drivers.arm.sim import SimArm
 from oralnav.drivers.clock import VirtualClock
 from oralnav.realtime.control_loop import GUIDE, HOLD, LoopSettings

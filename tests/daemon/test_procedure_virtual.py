@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from oralnav.config.daemon import load_config
-from oralnav.daemon.api import SutureTarget
 from oralnav.daemon.core import DaemonCore
 from oralnav.daemon.navigation_task import ArmProbe, NavigationTask
+from oralnav.daemon.schemas import SutureTarget
 from oralnav.drivers.arm.sim import SimArm
 from oralnav.drivers.camera.sim import SimCameraSet
 from oralnav.drivers.clock import VirtualClock

@@ -224,7 +224,7 @@ def test_an_unreachable_arm_and_camera_fault_the_cell_and_recover(tmp_path: Path
     controller address did not answer); once the controller and
     the cameras appear, the arm connects and pairs are tracked, and an operator reset
     brings the cell to READY."""
-    from oralnav.sim.peers.ur_controller import FakeURControllerProcess
+    from oralnav.sim.peers.ur import FakeURControllerProcess
 
     ur_host = f"127.84.{os.getpid() % 250}.2"
     with contextlib.ExitStack() as stack:

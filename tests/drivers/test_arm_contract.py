@@ -31,7 +31,7 @@ from oralnav.drivers.arm.sim import SimArm
 from oralnav.drivers.arm.ur import URArm
 from oralnav.drivers.clock import WallClock
 from oralnav.drivers.errors import DriverIOError
-from oralnav.sim.peers.ur_controller import FakeURControllerProcess
+from oralnav.sim.peers.ur import FakeURControllerProcess
 
 H = 0.002  # control period, s (500 Hz)
 WAIT = 3.0  # s for a state change to show

@@ -1,7 +1,7 @@
 """Issue 8, backend 4: the UR arm through ur-rtde (URArm), against the fake UR controller.
 
 Every test runs the real ur_rtde client (RTDEReceiveInterface, RTDEControlInterface,
-DashboardClient) on loopback against :class:`oralnav.sim.peers.ur_controller.FakeURController`,
+DashboardClient) on loopback against :class:`oralnav.sim.peers.ur.FakeURController`,
 which runs in a child process (ur_rtde's constructors hold the GIL). ur_rtde fixes the
 ports (30004, 30003, 29999), so each fake gets its own loopback address.
 """
@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from oralnav.drivers.arm import open_arm
 from oralnav.drivers.arm.ur import URArm
 from oralnav.drivers.errors import DriverInitError, DriverIOError
-from oralnav.sim.peers.ur_controller import FakeURControllerProcess
+from oralnav.sim.peers.ur import FakeURControllerProcess
 
 H = 0.002  # control period, s (500 Hz)
 HOME = [0.35, -0.12, 0.28, 2.9, 0.4, -0.3]  # m, rotation vector: a tilted tool

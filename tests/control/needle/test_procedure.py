@@ -13,21 +13,25 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from oralnav.control.errors import NeedleError
+from oralnav.config.rig import trial_rig
+from oralnav.control.errors import NeedleError, StepOrderError
 from oralnav.control.geometry import rotation_angle
 from oralnav.control.needle.procedure import (
     STEPS,
     NeedleProcedure,
     ProcedureSettings,
     StepResult,
-    _back_off,
+    back_off,
     port_drives,
     port_pair,
     step_rates,
 )
-from oralnav.safety.errors import StateError
 from oralnav.sim.world.needle_cell import NeedleCell
 from oralnav.sim.world.needle_trials import CT1, trial_cell, trial_scene
+from oralnav.sim.world.needle_truth import check_truth
+
+#: The shipped stereo endoscope the trials are seen by.
+RIG = trial_rig()
 
 FAST = ProcedureSettings(particles=1500)
 
@@ -38,9 +42,9 @@ def _ports(settings: ProcedureSettings) -> dict:
 
 
 def _procedure(seed: int = 0, settings: ProcedureSettings = FAST, **cell_options):
-    cell, info = trial_cell(seed, **cell_options)
+    cell, info = trial_cell(seed, rig=RIG, **cell_options)
     proc = NeedleProcedure(cell, info.incision, info.surface_normal, settings,
-                           surface_outline=info.surface_outline)
+                           surface_outline=info.surface_outline, truth_check=check_truth)
     return cell, proc
 
 
@@ -71,7 +75,7 @@ def test_an_undefined_suture_refuses_before_looking_or_moving(depth):
 def test_a_suture_no_arm_reaches_refuses_before_moving():
     """Bad input: a needle and suture out of the arms' reach refuse NG, saying so,
     with nothing moved."""
-    scene, reach, info = trial_scene(0)
+    scene, reach, info = trial_scene(0, rig=RIG)
     short = {n: replace(r, max_insertion=r.min_insertion + 0.01) for n, r in reach.items()}
     # the parked grippers start out of this reach: start the cell with the true reach,
     # then narrow it the way a changed workspace would
@@ -101,7 +105,7 @@ def test_a_suture_no_arm_drives_one_way_is_driven_the_other():
     mid = 0.5 * (np.array(plan["entry_ref"]) + np.array(plan["exit_ref"]))
     assert np.linalg.norm(mid - inc.mean(axis=0)) < 0.003  # the same suture point
     # the same as the plan for the incision given the other way round
-    cell, info = trial_cell(30)
+    cell, info = trial_cell(30, rig=RIG)
     other = NeedleProcedure(cell, info.incision[::-1], info.surface_normal, FAST,
                             surface_outline=info.surface_outline)
     same = other._plan()
@@ -115,13 +119,13 @@ def test_ports_are_chosen_so_that_an_arm_drives_the_suture():
     ports trial 8 draws first neither arm can drive its suture either way (the plan
     refuses, out of reach); with ``port_drives`` the trial takes ports from which the plan
     finds a driving grasp, and the arm recorded as driving is one that can."""
-    cell, info = trial_cell(8)
+    cell, info = trial_cell(8, rig=RIG)
     first = NeedleProcedure(cell, info.incision, info.surface_normal, FAST,
                             surface_outline=info.surface_outline)
     with pytest.raises(Exception, match="no arm can drive this suture either way"):
         first._plan()
     check = port_drives(CT1, FAST)
-    cell, info = trial_cell(8, drivable=check)
+    cell, info = trial_cell(8, rig=RIG, drivable=check)
     arms = info.values["arms"]
     assert any(a["port_drives"] for a in arms.values())
     proc = NeedleProcedure(cell, info.incision, info.surface_normal, FAST,
@@ -142,15 +146,15 @@ def test_a_port_that_drives_but_cannot_pull_is_not_taken():
     trials then failed the regrasp for reach)."""
     from oralnav.control.needle.drive import SutureGeometry
     from oralnav.control.needle.grasp import select_grasp
-    from oralnav.control.needle.procedure import _drive_pick, drive_ways
+    from oralnav.control.needle.procedure import drive_pick, drive_ways
 
-    cell, info = trial_cell(22)
+    cell, info = trial_cell(22, rig=RIG)
     reach = cell.arm_reach("right")
     geometry = SutureGeometry.for_needle(CT1, FAST.depth)
     driven = []
     for _, _, drive in drive_ways(info.incision, info.surface_normal, geometry, FAST):
         try:
-            select_grasp(CT1, drive, _drive_pick(FAST),
+            select_grasp(CT1, drive, drive_pick(FAST),
                          reachable=lambda T: reach.reachable(T, FAST.reach_margin)[0])
             driven.append(True)
         except NeedleError:
@@ -166,7 +170,7 @@ def test_ports_are_chosen_so_that_the_other_arm_can_hand_off():
     pair check says so, the trial chosen with it takes other sites, which it accepts,
     and there the pick-up (with that many hand-off poses) and the hand-off pass
     (truth)."""
-    drives_only, info = trial_cell(70, drivable=port_drives(CT1, FAST))
+    drives_only, info = trial_cell(70, rig=RIG, drivable=port_drives(CT1, FAST))
     check = port_pair(CT1, FAST)
 
     def workable(cell: NeedleCell) -> bool:
@@ -190,7 +194,7 @@ def test_ports_are_chosen_so_that_the_other_arm_can_hand_off():
 def test_a_tracker_that_has_not_converged_refuses_before_moving():
     """Bad input: with the needle as bright as the pad the tracker cannot converge, and NG
     refuses with the tracker's reason; no arm moves."""
-    scene, reach, info = trial_scene(1)
+    scene, reach, info = trial_scene(1, rig=RIG)
     nd = scene.needles[0]
     pad_level = scene.pads[0].level
     scene = replace(scene, needles=(replace(nd, level=pad_level, specular=pad_level,
@@ -210,9 +214,9 @@ def test_steps_run_only_in_order():
     cell, proc = _procedure()
     before = _snapshot(cell)
     for st in STEPS[1:]:
-        with pytest.raises(StateError, match="NG comes first"):
+        with pytest.raises(StepOrderError, match="NG comes first"):
             proc.run(st)
-    with pytest.raises(StateError, match="unknown needle step"):
+    with pytest.raises(StepOrderError, match="unknown needle step"):
         proc.run("NX")
     assert proc.next_step == "NG" and _unmoved(cell, before) and cell.frame == 0
 
@@ -220,7 +224,7 @@ def test_steps_run_only_in_order():
 def test_bad_construction_is_refused():
     """Bad input: a one-arm procedure, an unknown arm, a degenerate incision or normal
     are refused with the reason."""
-    cell, info = trial_cell(0)
+    cell, info = trial_cell(0, rig=RIG)
     with pytest.raises(NeedleError, match="two distinct arms"):
         NeedleProcedure(cell, info.incision, info.surface_normal, arms=["left"])
     with pytest.raises(NeedleError, match="unknown arm"):
@@ -309,21 +313,21 @@ def test_the_exit_check_judges_the_crossings_not_the_slide():
     the tracked needle slid along its own circle by 8 deg (how an end misread near the
     pad's edge moves it) keeps its crossings, and passes; slid back until its tip is
     under the surface it fails, naming the tip."""
-    from oralnav.control.needle.procedure import _tip_part, _turn_about
+    from oralnav.control.needle.procedure import tip_part, turn_about
 
     cell, proc = _procedure(0, settings=ProcedureSettings())
     for step in ("NG", "NH", "ND"):
         assert proc.run(step).ok
     T = cell.truth().T_ref_needle
     axis, centre = T[:3, 2], T[:3, 3]
-    proc._check_exit(_turn_about(axis, math.radians(8.0), centre) @ T, "test")
-    proc._check_exit(_turn_about(axis, math.radians(-8.0), centre) @ T, "test")
-    _, _, out_mm = _tip_part(proc.needle, T, proc.incision.mean(axis=0), proc.normal, proc.s)
+    proc._check_exit(turn_about(axis, math.radians(8.0), centre) @ T, "test")
+    proc._check_exit(turn_about(axis, math.radians(-8.0), centre) @ T, "test")
+    _, _, out_mm = tip_part(proc.needle, T, proc.incision.mean(axis=0), proc.normal, proc.s)
     back = out_mm * 1e-3 / proc.needle.radius + math.radians(3.0)
     fails = []
     for sign in (1.0, -1.0):
         try:
-            proc._check_exit(_turn_about(axis, sign * back, centre) @ T, "test")
+            proc._check_exit(turn_about(axis, sign * back, centre) @ T, "test")
         except Exception as exc:     # the procedure's step failure
             fails.append(str(exc))
     assert any("the tip under the surface" in f for f in fails), fails
@@ -656,7 +660,7 @@ def test_the_hold_check_judges_the_follow_across_the_line_of_sight(held):
     from types import SimpleNamespace
 
     from oralnav.control.geometry import invert
-    from oralnav.control.needle.procedure import _StepFailed, _translation
+    from oralnav.control.needle.procedure import StepFailed, translation
 
     cell, proc = _procedure(0)
     arm = proc.arms[0]
@@ -665,16 +669,16 @@ def test_the_hold_check_judges_the_follow_across_the_line_of_sight(held):
     ray /= np.linalg.norm(ray)
     across = np.cross(ray, proc.normal)
     across /= np.linalg.norm(across)
-    move = _translation(proc.s.hold_check * across)
+    move = translation(proc.s.hold_check * across)
     T0 = invert(move) @ cell.gripper_pose(arm)          # the jaws came 3 mm across
     where = (move if held else np.eye(4)) @ before
-    seen = _translation(0.0025 * ray + 0.0002 * proc.normal) @ where
+    seen = translation(0.0025 * ray + 0.0002 * proc.normal) @ where
     proc._look = lambda *a, **k: SimpleNamespace(converged=True, pose=seen, refined=None,
                                                  reason="")
     if held:
         assert np.array_equal(proc._followed(arm, before, T0, "test", 0.001), seen)
     else:
-        with pytest.raises(_StepFailed) as err:
+        with pytest.raises(StepFailed) as err:
             proc._followed(arm, before, T0, "test", 0.001)
         assert err.value.cause == "grasp_missed"
 
@@ -765,5 +769,5 @@ def test_the_hand_off_is_planned_with_the_drivers_path_to_it():
     path = proc._driver_path(T0, T_B)
     assert np.allclose(path[-1], T_B)
     k = next(i for i, T in enumerate(path)
-             if np.allclose(T, _back_off(T_B, proc.s.approach)))
+             if np.allclose(T, back_off(T_B, proc.s.approach)))
     assert 0 < k < len(path) - 1

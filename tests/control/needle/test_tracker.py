@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from oralnav.config.rig import trial_rig
 from oralnav.control.errors import NeedleError
 from oralnav.control.geometry import invert, transform_from_euler
 from oralnav.control.needle.features import feature_distance, feature_maps
@@ -310,7 +311,7 @@ def _driven_pose(scene, depth=0.0045, tilt_deg=30.0, turn_deg=45.0):
 def driven():
     """A trial cell's needle standing on the pad, tracked over two frames; then pushed
     6 mm along the surface normal into the pad (three frames rendered)."""
-    scene, reach, info = trial_scene(DRIVEN_SEED)
+    scene, reach, info = trial_scene(DRIVEN_SEED, rig=trial_rig())
     T_in = _driven_pose(scene)
     n = scene.pads[0].T_ref_pad[:3, 2]
     push = np.eye(4)

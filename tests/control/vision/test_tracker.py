@@ -14,6 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from oralnav.config.scene import load_scene
+from oralnav.config.tracker import load_tracker
 from oralnav.control.geometry import pose_error
 from oralnav.control.vision.detection import DetectionError
 from oralnav.control.vision.pose import PoseEstimate
@@ -51,14 +52,14 @@ def _err(est: PoseEstimate, T_true: np.ndarray) -> tuple[float, float]:
 
 # -- construction ---------------------------------------------------------------------------
 def test_from_files_with_the_shipped_rig_and_fields():
-    """Tracker construction: from_files reads the shipped rig and marker-field files
+    """Tracker construction: load_tracker reads the shipped rig and marker-field files
     (cameras left/right, fields robot/effector/opener) and passes method and options on;
     unknown methods or modes, duplicate field names and an empty field list are refused."""
-    tr = Tracker.from_files(RIG_FILE, FIELDS_FILE, method="ba", mode="roi", weighting="axis")
+    tr = load_tracker(RIG_FILE, FIELDS_FILE, method="ba", mode="roi", weighting="axis")
     assert set(tr.fields) == set(FIELDS)
     assert tuple(tr.rig.names) == ("left", "right")
     assert (tr.method, tr.mode, tr.weighting) == ("ba", "roi", "axis")
-    assert Tracker.from_files(str(RIG_FILE), str(FIELDS_FILE)).method == "nvgba"
+    assert load_tracker(str(RIG_FILE), str(FIELDS_FILE)).method == "nvgba"
     assert isinstance(tr.last_timing, FrameTiming)
     fields = list(tr.fields.values())
     with pytest.raises(ValueError, match="unknown method 'lsq'"):

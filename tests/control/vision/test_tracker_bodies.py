@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from oralnav.config.fields import load_fields
 from oralnav.config.rigid_bodies import load_calibration_txt, load_rigid_bodies
+from oralnav.config.tracker import load_tracker
 from oralnav.control.errors import MarkerFieldError
 from oralnav.control.geometry import make_transform, pose_error
 from oralnav.control.vision.camera import CameraModel, Rig
@@ -168,18 +169,18 @@ def test_single_tag_and_mm_tables_give_metres(rig, tmp_path):
 
 
 def test_from_files_with_bodies(tmp_path):
-    """tracker bodies: Tracker.from_files takes bodies as RigidBody objects, table paths
+    """tracker bodies: load_tracker takes bodies as RigidBody objects, table paths
     (named after the file) or (name, path) pairs in body_dictionary, with or without a
     marker-field file."""
     row = " 7.25 7.25 0 0 0 0 14.5 0 0 14.5 14.5 0 0 14.5 0\n"
     table, other = tmp_path / "probe.txt", tmp_path / "t2.txt"
     table.write_text("1" + row)
     other.write_text("2" + row)
-    tr = Tracker.from_files(RIG_FILE, bodies=[table, ("other", other), _plate()])
+    tr = load_tracker(RIG_FILE, bodies=[table, ("other", other), _plate()])
     assert tr.fields == {} and list(tr.bodies) == ["probe", "other", "plate"]
     assert tr.bodies["probe"].dictionary == "DICT_ARUCO_ORIGINAL"
     np.testing.assert_allclose(tr.bodies["probe"].tags[1][2], [0.0145, 0.0145, 0.0])
-    tr = Tracker.from_files(RIG_FILE, FIELDS_FILE, method="ba",
+    tr = load_tracker(RIG_FILE, FIELDS_FILE, method="ba",
                             bodies=[("t", table)], body_dictionary="DICT_6X6_250")
     assert set(tr.fields) == {"robot", "effector", "opener"} and tr.method == "ba"
     assert tr.bodies["t"].dictionary == "DICT_6X6_250"

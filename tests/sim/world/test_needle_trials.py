@@ -12,16 +12,20 @@ import math
 import numpy as np
 import pytest
 
+from oralnav.config.rig import trial_rig
 from oralnav.control.geometry import invert, transform_points
 from oralnav.sim.world.needle_cell import ArmReach, CellError
 from oralnav.sim.world.needle_trials import trial_cell, trial_scene
+
+#: The shipped stereo endoscope the trials are seen by.
+RIG = trial_rig()
 
 SEEDS = range(20)
 
 
 @pytest.fixture(scope="module")
 def trials():
-    return {s: trial_scene(s) for s in SEEDS}
+    return {s: trial_scene(s, rig=RIG) for s in SEEDS}
 
 
 def test_needle_is_seen_in_both_views(trials):
@@ -30,7 +34,7 @@ def test_needle_is_seen_in_both_views(trials):
     gripper) and the wire is drawn over the pad at every arc point (it stands out from the
     bare pad inside the arc)."""
     for seed in SEEDS:
-        cell, _ = trial_cell(seed)
+        cell, _ = trial_cell(seed, rig=RIG)
         images = cell.images()
         for cam in cell.cameras:
             truth = cell.last_frame.needle_truth[cam]["needle"]
@@ -48,7 +52,7 @@ def test_the_draw_is_deterministic(trials):
     """Item 4, trial scenes: the same seed gives the same scene, reach and record (the
     same images too), other seeds differ, and the difficulty changes the nuisances but not
     the layout."""
-    a_scene, a_reach, a_info = trial_scene(3)
+    a_scene, a_reach, a_info = trial_scene(3, rig=RIG)
     b_scene, b_reach, b_info = trials[3]
     assert a_info.to_json() == b_info.to_json()
     np.testing.assert_array_equal(a_scene.needles[0].T_ref_needle,
@@ -59,19 +63,19 @@ def test_the_draw_is_deterministic(trials):
         np.testing.assert_array_equal(a_reach[n].rcm, b_reach[n].rcm)
         assert a_reach[n].max_insertion == b_reach[n].max_insertion
     assert a_scene.imaging == b_scene.imaging
-    c1, _ = trial_cell(3)
-    c2, _ = trial_cell(3)
+    c1, _ = trial_cell(3, rig=RIG)
+    c2, _ = trial_cell(3, rig=RIG)
     i1, i2 = c1.images(), c2.images()
     assert all(i1[c].tobytes() == i2[c].tobytes() for c in c1.cameras)
     poses = {tuple(np.round(trials[s][0].needles[0].T_ref_needle[:3, 3], 9)) for s in SEEDS}
     assert len(poses) == len(SEEDS)
-    easy_scene, _, easy = trial_scene(3, difficulty=0.0)
+    easy_scene, _, easy = trial_scene(3, rig=RIG, difficulty=0.0)
     assert easy.values["needle"] == b_info.values["needle"]
     assert easy.values["arms"] == b_info.values["arms"]
     assert easy_scene.imaging.illumination_gradient == (0.0, 0.0)
     assert easy_scene.imaging.blur_sigma_px == 0.8 and easy_scene.imaging.read_noise_dn == 1.0
     with pytest.raises(CellError, match="difficulty"):
-        trial_scene(3, difficulty=1.5)
+        trial_scene(3, rig=RIG, difficulty=1.5)
 
 
 def test_layout_follows_the_rules(trials):
@@ -162,7 +166,7 @@ def test_ports_are_selected_for_the_suture():
         calls.append((reach, incision, normal))
         return len(calls) in (3, 6)        # the third site of each arm
 
-    scene, reach, info = trial_scene(5, drivable=third_site)
+    scene, reach, info = trial_scene(5, rig=RIG, drivable=third_site)
     assert [a["port"] for a in info.values["arms"].values()] == [2, 2]
     assert all(a["port_drives"] for a in info.values["arms"].values())
     assert len(calls) == 6
@@ -170,9 +174,9 @@ def test_ports_are_selected_for_the_suture():
     np.testing.assert_allclose(calls[0][2], info.surface_normal)
     assert isinstance(calls[0][0], ArmReach)          # the candidate port's reach
     calls.clear()
-    again = trial_scene(5, drivable=third_site)[2]
+    again = trial_scene(5, rig=RIG, drivable=third_site)[2]
     assert again.values == info.values
-    _, reach_none, none = trial_scene(5, drivable=lambda *a: False)
+    _, reach_none, none = trial_scene(5, rig=RIG, drivable=lambda *a: False)
     assert [a["port"] for a in none.values["arms"].values()] == [0, 0]
     assert not any(a["port_drives"] for a in none.values["arms"].values())
     np.testing.assert_allclose(reach_none["left"].rcm, none.values["arms"]["left"]["rcm"],
@@ -197,7 +201,7 @@ def test_ports_are_chosen_together_with_a_pair_check():
         asked.append((reaches, incision, normal, T_ref_needle, rig, outline))
         return len(asked) == 3
 
-    scene, reach, info = trial_scene(5, drivable=lambda *a: True, workable=third_pair)
+    scene, reach, info = trial_scene(5, rig=RIG, drivable=lambda *a: True, workable=third_pair)
     assert [a["port"] for a in info.values["arms"].values()] == [1, 0]
     assert info.values["ports_workable"] is True
     reaches, incision, normal, T_needle, rig, outline = asked[0]
@@ -211,7 +215,7 @@ def test_ports_are_chosen_together_with_a_pair_check():
     assert asked[2][0]["left"] is reach["left"] and asked[2][0]["right"] is reach["right"]
     assert asked[1][0]["left"] is asked[0][0]["left"]        # (0, 1) after (0, 0)
 
-    _, reach_none, none = trial_scene(5, drivable=lambda *a: True,
+    _, reach_none, none = trial_scene(5, rig=RIG, drivable=lambda *a: True,
                                       workable=lambda *a: False)
     assert [a["port"] for a in none.values["arms"].values()] == [0, 0]
     assert none.values["ports_workable"] is False
@@ -220,4 +224,4 @@ def test_ports_are_chosen_together_with_a_pair_check():
         assert none.values[key] == info.values[key]
     assert not np.allclose(reach_none["left"].rcm, reach["left"].rcm)
     with pytest.raises(CellError, match="drivable"):
-        trial_scene(5, workable=third_pair)
+        trial_scene(5, rig=RIG, workable=third_pair)
