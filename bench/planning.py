@@ -399,7 +399,7 @@ def _chart_build(doc: dict[str, Any], out: Path) -> Path:
 
 # -- 3. FPSM against the exact mesh -----------------------------------------------------
 
-class _MeshOracle:
+class MeshOracle:
     """python-fcl on the full mesh: rod (capsule) collisions and axis clearances."""
 
     def __init__(self, mesh: Any):
@@ -450,7 +450,7 @@ class _MeshOracle:
         return max(float(d), 0.0)
 
 
-def _rods(mesh: Any, model: FPSM, n: int, rng: np.random.Generator
+def sample_rods(mesh: Any, model: FPSM, n: int, rng: np.random.Generator
           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``n`` rod axes: starts T inside the cavity, unit directions D within
     :data:`MAX_TILT_DEG` of +z, ends E on the last slice plane."""
@@ -476,7 +476,7 @@ def _rods(mesh: Any, model: FPSM, n: int, rng: np.random.Generator
     return T, D, E
 
 
-def _exact(oracle: _MeshOracle, T: np.ndarray, E: np.ndarray, r: float) -> dict[str, Any]:
+def _exact(oracle: MeshOracle, T: np.ndarray, E: np.ndarray, r: float) -> dict[str, Any]:
     """The mesh's answers for rods of radius ``r`` on the axes T-E."""
     n = len(T)
     return {"hit": np.array([oracle.collides(T[i], E[i], r) for i in range(n)]),
@@ -527,7 +527,7 @@ def _check_rods(model: FPSM, T: np.ndarray, D: np.ndarray, E: np.ndarray, r: flo
     }
 
 
-def _time_rods(model: FPSM, oracle: _MeshOracle, T: np.ndarray, D: np.ndarray,
+def _time_rods(model: FPSM, oracle: MeshOracle, T: np.ndarray, D: np.ndarray,
                E: np.ndarray, r: float, batch_repeats: int) -> dict[str, Any]:
     n = len(T)
     t_f, t_c, t_d = np.empty(n), np.empty(n), np.empty(n)
@@ -568,7 +568,7 @@ def fpsm_vs_mesh(scene: PlanningScene, quick: bool) -> dict[str, Any]:
                        settings=FitSettings(method=scene.build.method if scene.build
                                             else "slp"), boundary="plane")[0]
     n = 1000 if quick else 2000
-    oracle = _MeshOracle(mesh)
+    oracle = MeshOracle(mesh)
     _say(f"fpsm vs mesh: fcl BVH of {len(mesh.faces)} triangles built in "
          f"{oracle.build_s * 1e3:.0f} ms; {n} rods per radius")
     res: dict[str, Any] = {"model": {"slices": model.slices, "points": model.points,
@@ -592,7 +592,7 @@ def fpsm_vs_mesh(scene: PlanningScene, quick: bool) -> dict[str, Any]:
                                boundary="plane")[0]
     res["by_slices"] = []
     for k, r in enumerate(ROD_RADII):
-        T, D, E = _rods(mesh, model, n, np.random.default_rng([4, k, 0]))
+        T, D, E = sample_rods(mesh, model, n, np.random.default_rng([4, k, 0]))
         exact = _exact(oracle, T, E, r)
         c = _check_rods(model, T, D, E, r, r, exact)
         res["by_radius"].append(c)
@@ -619,7 +619,7 @@ def fpsm_vs_mesh(scene: PlanningScene, quick: bool) -> dict[str, Any]:
         for c in res["by_radius"]}
     for k, r in enumerate(ROD_RADII):
         # a fresh rod set: the margin is checked on rods it was not measured on
-        T, D, E = _rods(mesh, model, n, np.random.default_rng([4, k, 1]))
+        T, D, E = sample_rods(mesh, model, n, np.random.default_rng([4, k, 1]))
         c = _check_rods(model, T, D, E, r, r + margin, _exact(oracle, T, E, r))
         res["with_margin"].append(c)
         p = c["false_safe_penetration_mm"]
@@ -637,7 +637,7 @@ def fpsm_vs_mesh(scene: PlanningScene, quick: bool) -> dict[str, Any]:
     return res
 
 
-def _certified_rods(model: FPSM, oracle: _MeshOracle, mesh: Any, n: int,
+def _certified_rods(model: FPSM, oracle: MeshOracle, mesh: Any, n: int,
                     quick: bool) -> dict[str, Any]:
     """The certified rod check (:mod:`oralnav.control.planning.rod_check`) on the planner's model
     (slab envelopes) against fcl: false safes (must be none), false alarms, how far below
@@ -649,7 +649,7 @@ def _certified_rods(model: FPSM, oracle: _MeshOracle, mesh: Any, n: int,
                            "grid_mm": rc.h * 1e3, "cap_mm": rc.cap * 1e3,
                            "tol_mm": rc.tol * 1e3, "by_radius": []}
     for k, r in enumerate(ROD_RADII):
-        T, D, E = _rods(mesh, model, n, np.random.default_rng([4, k, 2]))
+        T, D, E = sample_rods(mesh, model, n, np.random.default_rng([4, k, 2]))
         ex = _exact(oracle, T, E, r)
         c = rc.clearances(T, E, r)
         safe = c > 0

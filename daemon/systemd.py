@@ -215,7 +215,7 @@ def watchdog_interval(environ: Mapping[str, str] | None = None,
     return usec / 1e6
 
 
-def _ask(healthy: Callable[[], bool | tuple[bool, str | None]]) -> tuple[bool, str | None]:
+def ask_health(healthy: Callable[[], bool | tuple[bool, str | None]]) -> tuple[bool, str | None]:
     """``healthy()``, which may give ``(ok, why)``; an exception counts as unhealthy (and
     is the reason)."""
     try:
@@ -257,7 +257,7 @@ async def watchdog_task(notifier: Notifier,
     was_healthy = True
     next_at = anyio.current_time()
     while True:
-        ok, why = _ask(healthy)
+        ok, why = ask_health(healthy)
         if ok:
             notifier.watchdog()
             if not was_healthy:

@@ -101,7 +101,7 @@ def _apply_plan(loop: ControlLoop, msg: tuple[int, Any]) -> None:
         loop.refuse_guide(seq, f"{type(exc).__name__}: {exc}")
         return
     loop.set_guide(guide, seq)
-    gc.freeze()  # the plan's objects join the frozen heap (_settle_heap)
+    gc.freeze()  # the plan's objects join the frozen heap (settle_heap)
 
 
 def _warm_guidance() -> None:
@@ -126,7 +126,7 @@ def _warm_guidance() -> None:
         log.exception("warming up guided motion failed; a first guided period may run late")
 
 
-def _settle_heap() -> None:
+def settle_heap() -> None:
     """Collect once and freeze what is left, so that the cyclic collector never walks the
     startup heap again. With numpy, scipy and numba loaded that heap holds about 150 000
     objects, and one full collection of them took 96 ms: a period 55 ms late in the demo
@@ -218,7 +218,7 @@ def _child(spec: ProcessSpec, names: dict[str, str], ready: Any, plans: Any = No
                     _apply_plan(loop, msg)
             loop.step(now, lateness)
 
-        _settle_heap()
+        settle_heap()
         ready.set()
         cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "?"
         log.info("running at %g Hz on CPU(s) %s, %s", spec.settings.rate_hz, cpus, sched)

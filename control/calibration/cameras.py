@@ -192,7 +192,7 @@ def _too_thin(view: _View, board: MarkerField, min_corners: int) -> str | None:
     return None
 
 
-def _parse_views(views: Sequence[ViewLike], board: MarkerField, size: tuple[int, int],
+def parse_views(views: Sequence[ViewLike], board: MarkerField, size: tuple[int, int],
                  min_corners: int | None, where: str
                  ) -> tuple[list[_View | None], dict[int, str]]:
     """Check every view; with ``min_corners``, views too thin to use become ``None`` and
@@ -246,7 +246,7 @@ def _homography_normals(views: Sequence[_View], K: np.ndarray) -> np.ndarray:
     return np.asarray(out).reshape(-1, 3)
 
 
-def _homography_screen(views: Sequence[_View], k: float, floor_px: float) -> list[int]:
+def homography_screen(views: Sequence[_View], k: float, floor_px: float) -> list[int]:
     """Indices of views whose corners no plane-to-image homography fits (module docstring).
 
     The RMS residual (px) of each view's own least-squares homography is large for every
@@ -495,7 +495,7 @@ class _Robust:
     rounds: int
 
 
-def _robust_fit(indices: Sequence[int], fit: Callable[[list[int]], Any],
+def robust_fit(indices: Sequence[int], fit: Callable[[list[int]], Any],
                 errors: Callable[[Any, list[int]], dict[int, float]], *, reject: bool,
                 min_views: int, k: float, floor_px: float, max_rounds: int,
                 first_out: Sequence[int] = ()) -> _Robust:
@@ -633,7 +633,7 @@ def calibrate_camera(views: Sequence[ViewLike], board_field: MarkerField,
         raise CalibrationError(f"min_views must be at least 3, got {min_views}")
     if K_guess is not None and np.asarray(K_guess).shape != (3, 3):
         raise CalibrationError(f"K_guess must be 3 x 3, got shape {np.asarray(K_guess).shape}")
-    parsed, skipped = _parse_views(views, board_field, size, max(4, min_corners), "")
+    parsed, skipped = parse_views(views, board_field, size, max(4, min_corners), "")
     usable = [v for v in parsed if v is not None]
     if len(usable) < min_views:
         raise CalibrationError(_not_enough(len(usable), min_views, len(parsed), skipped,
@@ -662,10 +662,10 @@ def calibrate_camera(views: Sequence[ViewLike], board_field: MarkerField,
                 poses.setdefault(i, T)
         return out
 
-    rob = _robust_fit(sorted(by_index), fit_views, view_errors, reject=reject_outliers,
+    rob = robust_fit(sorted(by_index), fit_views, view_errors, reject=reject_outliers,
                       min_views=min_views, k=outlier_k, floor_px=outlier_floor_px,
                       max_rounds=max_rounds,
-                      first_out=_homography_screen(usable, outlier_k, outlier_floor_px))
+                      first_out=homography_screen(usable, outlier_k, outlier_floor_px))
     fit, poses = rob.state
     order = rob.active
     spread = _normal_spread_deg(np.array([poses[i][:3, 2] for i in order]))
@@ -836,8 +836,8 @@ def calibrate_stereo(views_left: Sequence[ViewLike], views_right: Sequence[ViewL
         raise CalibrationError(
             f"views_left has {len(views_left)} views and views_right {len(views_right)}: "
             "synchronized views pair one to one (the same index is the same instant)")
-    pl, _ = _parse_views(views_left, board_field, L.size, None, "left ")
-    pr, _ = _parse_views(views_right, board_field, Rc.size, None, "right ")
+    pl, _ = parse_views(views_left, board_field, L.size, None, "left ")
+    pr, _ = parse_views(views_right, board_field, Rc.size, None, "right ")
     pairs: dict[int, tuple[_View, _View]] = {}
     skipped: dict[int, str] = {}
     for k, (a, b) in enumerate(zip(pl, pr, strict=True)):
@@ -897,7 +897,7 @@ def calibrate_stereo(views_left: Sequence[ViewLike], views_right: Sequence[ViewL
                 poses.setdefault(i, T)
         return out
 
-    rob = _robust_fit(sorted(pairs), fit_views, view_errors, reject=reject_outliers,
+    rob = robust_fit(sorted(pairs), fit_views, view_errors, reject=reject_outliers,
                       min_views=min_views, k=outlier_k, floor_px=outlier_floor_px,
                       max_rounds=max_rounds)
     (K1, d1, K2, d2), T_right_left, poses = rob.state

@@ -801,7 +801,7 @@ class NeedleTracker:
                         and twin_swage >= max(s.swage_min,
                                               s.swage_contest * self._side_evidence)
                         and self._determined(twin_ref))
-            elif _contested(swage, twin_swage, s):
+            elif contested(swage, twin_swage, s):
                 # both read the thread alike (trial 20's half-circle needle, whose thread
                 # reaches the pad's edge 4 mm on: +8.7 DN for the right pose, +9.3 for
                 # the twin slid 14 deg onto the thread, at 0.07 and 0.11 px RMS)
@@ -901,7 +901,7 @@ class NeedleTracker:
                 # contradict it there, and the prior's fit stands
                 assert self._belief is not None
                 alone = fit(T0, None, narrow)
-                if alone.ok and _contradicts(prior, self._belief[1], alone, s.prior_gate):
+                if alone.ok and contradicts(prior, self._belief[1], alone, s.prior_gate):
                     # they decide, but a fit that agrees with the motion, from another
                     # start, goes first; the slide they do not see stays the prior's
                     r, consistent = alone, False
@@ -942,7 +942,7 @@ class NeedleTracker:
             f.last = replace(f.last, pose=pose, pose_alt=pose @ _flip4(f.flip))
 
 
-def _contested(swage: float, twin_swage: float, s: TrackSettings) -> bool:
+def contested(swage: float, twin_swage: float, s: TrackSettings) -> bool:
     """Whether two twins' thread evidence (DN) is not decisive: both read the thread
     past their own base (at least ``swage_min``), within ``swage_contest`` times each
     other."""
@@ -950,7 +950,7 @@ def _contested(swage: float, twin_swage: float, s: TrackSettings) -> bool:
     return lo >= s.swage_min and hi < s.swage_contest * lo
 
 
-def _contradicts(prior: PosePrior, prior_cov: np.ndarray, alone: Refined,
+def contradicts(prior: PosePrior, prior_cov: np.ndarray, alone: Refined,
                  gate: float) -> bool:
     """Whether a fit of the images alone lies further than ``gate`` (squared
     Mahalanobis distance, the prior's covariance ``prior_cov`` and the fit's summed)
@@ -965,7 +965,7 @@ def _contradicts(prior: PosePrior, prior_cov: np.ndarray, alone: Refined,
         return False
 
 
-def _slide(deg: float) -> np.ndarray:
+def arc_slide(deg: float) -> np.ndarray:
     """A turn of ``deg`` about frame N's z axis (the needle's axis through its centre):
     the arc slides along itself."""
     S = np.eye(4)
@@ -975,7 +975,7 @@ def _slide(deg: float) -> np.ndarray:
 
 #: The slides tried at initialisation besides each start itself (seed 002's needle:
 #: 8 deg is 1.8 mm of a 13 mm arc, about the end search's reach).
-_SLIDES = tuple(_slide(d) for d in (-16.0, -8.0, 8.0, 16.0))
+_SLIDES = tuple(arc_slide(d) for d in (-16.0, -8.0, 8.0, 16.0))
 
 
 def _flip4(flip: np.ndarray) -> np.ndarray:

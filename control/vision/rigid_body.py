@@ -212,7 +212,7 @@ def default_detector_parameters() -> cv2.aruco.DetectorParameters:
 _local = threading.local()
 
 
-def _cached_detector(dictionary_name: str) -> cv2.aruco.ArucoDetector:
+def cached_detector(dictionary_name: str) -> cv2.aruco.ArucoDetector:
     cache: dict[str, cv2.aruco.ArucoDetector] | None = getattr(_local, "detectors", None)
     if cache is None:
         cache = _local.detectors = {}
@@ -257,7 +257,7 @@ def detect_tag_list(image: np.ndarray, dictionary_name: str,
     """
     gray = _as_gray(image)
     if params is None:
-        det = _cached_detector(dictionary_name)
+        det = cached_detector(dictionary_name)
     else:
         det = cv2.aruco.ArucoDetector(aruco_dictionary(dictionary_name), params)
     corners, ids, _ = det.detectMarkers(gray)

@@ -14,7 +14,7 @@ import anyio
 import pytest
 
 from oralnav.daemon.heartbeat import LoopHeartbeat
-from oralnav.daemon.systemd import _ask
+from oralnav.daemon.systemd import ask_health
 from oralnav.drivers.io.sim import SimInputs
 from oralnav.realtime.control_loop import HOLD
 from tests.daemon.core_rig import control_process, daemon_core, supervise_until
@@ -68,7 +68,7 @@ async def test_a_stopped_control_process_faults_within_its_limit_and_recovers(ce
         assert proc.alive  # alive, yet seen as hung
         ok, why = core.health()
         assert not ok and "silent" in why
-        assert _ask(core.health) == (False, why)  # the systemd watchdog withholds pings
+        assert ask_health(core.health) == (False, why)  # the systemd watchdog withholds pings
         assert int(proc.cmd.read()["stop_count"]) == stops_before + 1
         assert int(proc.nav.read()["mode"]) == HOLD
         assert hb.last_trip is not None and hb.last_trip["quiet_s"] > limit

@@ -267,11 +267,11 @@ def test_the_control_process_heap_is_frozen_before_the_loop_runs() -> None:
     period, later walks only what the loop itself creates."""
     import gc
 
-    from oralnav.realtime.control_process import _settle_heap
+    from oralnav.realtime.control_process import settle_heap
 
     assert len(gc.get_objects()) > 10_000  # this test process: pytest, numpy, scipy...
     try:
-        _settle_heap()
+        settle_heap()
         assert gc.get_freeze_count() > 10_000
         assert len(gc.get_objects()) < 1_000
     finally:

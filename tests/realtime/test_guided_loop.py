@@ -119,7 +119,7 @@ def test_patient_motion_into_the_rod_trips_the_alarm(planned):
     """Safety: when the model frame jumps so that the rod cuts the tissue (the patient
     moves 20 mm sideways; python-fcl on the mesh confirms the cut), the loop latches the
     stop with the rod alarm and sends no motion after it."""
-    from oralnav.bench.planning import _MeshOracle
+    from oralnav.bench.planning import MeshOracle
 
     scene, p = planned
     cell = GuidedCell(scene, p, push_duration=3.0)
@@ -133,7 +133,7 @@ def test_patient_motion_into_the_rod_trips_the_alarm(planned):
         r, x = cell.plan.rod_radius, T[:3, 0]
         start = T[:3, 3] + r * x
         end = start + (scene.model.certificate.z_hi - start[2]) / x[2] * x
-        assert _MeshOracle(scene.mesh).clearance(start, end) < r
+        assert MeshOracle(scene.mesh).clearance(start, end) < r
         t = cell.clock.now()
         cell.run(3, T_B_F=moved)
         st = cell.status.read()

@@ -20,12 +20,12 @@ from oralnav.config.rig import load_rig
 from oralnav.control.calibration.cameras import (
     MODELS,
     CalibrationError,
-    _homography_screen,
-    _parse_views,
-    _robust_fit,
     calibrate_camera,
     calibrate_stereo,
+    homography_screen,
     image_coverage,
+    parse_views,
+    robust_fit,
 )
 from oralnav.control.errors import ControlError
 from oralnav.control.geometry import make_transform, transform_points
@@ -219,12 +219,12 @@ def test_homography_screen_flags_permuted_ids_and_no_good_view(endo_views):
     whose residuals under the rational distortion stay at a few px."""
     views = list(endo_views.views["endoscope"])
     size = ENDOSCOPE["endoscope"].size
-    good, _ = _parse_views(views, endo_views.board, size, 4, "")
-    assert _homography_screen(good, 4.0, 0.25) == []
+    good, _ = parse_views(views, endo_views.board, size, 4, "")
+    assert homography_screen(good, 4.0, 0.25) == []
     v = views[7]
     views[7] = FieldCorners(np.random.default_rng(5).permutation(v.ids), v.px)
-    bad, _ = _parse_views(views, endo_views.board, size, 4, "")
-    assert _homography_screen(bad, 4.0, 0.25) == [7]
+    bad, _ = parse_views(views, endo_views.board, size, 4, "")
+    assert homography_screen(bad, 4.0, 0.25) == [7]
 
 
 def test_a_view_wrongly_screened_comes_back_and_a_wrecking_view_stays_out():
@@ -242,8 +242,8 @@ def test_a_view_wrongly_screened_comes_back_and_a_wrecking_view_stays_out():
         return {i: (5.0 if i == 3 else 0.05) * (1.0 + 0.2 * rng.random()) for i in idx}
 
     kw = dict(reject=True, min_views=3, k=4.0, floor_px=0.25, max_rounds=5)
-    assert _robust_fit(range(10), fit, errors, **kw).rejected == []
-    rob = _robust_fit(range(10), fit, errors, first_out=[1, 3], **kw)
+    assert robust_fit(range(10), fit, errors, **kw).rejected == []
+    rob = robust_fit(range(10), fit, errors, first_out=[1, 3], **kw)
     assert rob.rejected == [3] and 1 in rob.active
 
 

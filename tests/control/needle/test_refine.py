@@ -621,13 +621,13 @@ def test_a_fit_that_reads_no_end_is_slid_along_its_arc_to_find_one():
     window) reads no end, so its slide is free and the track is not determined; with
     nothing known to hold the slide, the finish slides it along its own arc and takes
     the fit that reads an end, which lands on the true pose."""
-    from oralnav.control.needle.tracker import _slide
+    from oralnav.control.needle.tracker import arc_slide
 
     cams = [LEFT, RIGHT]
     tracker = NeedleTracker(NEEDLE, cams, FilterSettings(particles=300, seed=1))
     feats = _feats(cams, thread=True)
     est = tracker.filter.initialize([f.distance for f in feats], (0.07, 0.13))
-    start = T_TRUE @ _slide(20.0)
+    start = T_TRUE @ arc_slide(20.0)
     alone = tracker._best_fit(feats, [start])
     assert alone.ok and not tracker._determined(alone)
     track = tracker._finish(feats, est, [start])
@@ -642,7 +642,7 @@ def test_the_gate_weighs_what_the_views_leave_free():
     and does not when they left it free (both ends hidden): they cannot contradict what
     they do not see."""
     from oralnav.control.needle.refine import Refined
-    from oralnav.control.needle.tracker import _contradicts
+    from oralnav.control.needle.tracker import contradicts
 
     cov = np.diag([math.radians(1.0)] * 3 + [1e-4] * 3) ** 2
     prior = PosePrior.from_cov(T_TRUE, cov)
@@ -651,6 +651,6 @@ def test_the_gate_weighs_what_the_views_leave_free():
     free = seen.copy()
     free[2, 2] = 1.0
     gate = TrackSettings().prior_gate
-    assert _contradicts(prior, cov, Refined(slid, 0.2, 1.0, 5e-5, 0.003, True, cov=seen), gate)
-    assert not _contradicts(prior, cov, Refined(slid, 0.2, 1.0, 5e-5, 1.0, True, cov=free),
+    assert contradicts(prior, cov, Refined(slid, 0.2, 1.0, 5e-5, 0.003, True, cov=seen), gate)
+    assert not contradicts(prior, cov, Refined(slid, 0.2, 1.0, 5e-5, 1.0, True, cov=free),
                             gate)

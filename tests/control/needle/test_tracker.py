@@ -23,7 +23,7 @@ from oralnav.control.needle.tracker import (
     NeedleTracker,
     TissuePlane,
     TrackSettings,
-    _contested,
+    contested,
 )
 from oralnav.control.vision.camera import CameraModel
 from oralnav.sim.world.needle_cell import NeedleCell
@@ -441,10 +441,10 @@ def test_twins_that_both_read_the_thread_alike_are_contested():
     reading under swage_min, or one clearly stronger (trial 17: +28 against +10),
     decides; the ratio must be at least 1."""
     s = TrackSettings()
-    assert _contested(8.7, 9.3, s) and _contested(9.3, 8.7, s)
-    assert not _contested(28.0, 10.0, s)
-    assert not _contested(9.0, 2.5, s) and not _contested(-9.0, 9.0, s)
-    assert not _contested(8.7, 9.3, replace(s, swage_contest=1.05))
+    assert contested(8.7, 9.3, s) and contested(9.3, 8.7, s)
+    assert not contested(28.0, 10.0, s)
+    assert not contested(9.0, 2.5, s) and not contested(-9.0, 9.0, s)
+    assert not contested(8.7, 9.3, replace(s, swage_contest=1.05))
     with pytest.raises(NeedleError, match="swage_contest"):
         TrackSettings(swage_contest=0.9)
 

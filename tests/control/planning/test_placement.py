@@ -213,9 +213,9 @@ def mouth_scene():
 
 
 def _exact_line_clearances(scene, p):
-    from oralnav.bench.planning import _MeshOracle
+    from oralnav.bench.planning import MeshOracle
 
-    oracle = _MeshOracle(scene.mesh)
+    oracle = MeshOracle(scene.mesh)
     prob = PlacementProblem(scene.model, scene.hole, scene.settings)
     P1, P2, D = prob.lines(np.array([[p.d_T, p.theta_T]]))
     z_hi = scene.model.certificate.z_hi

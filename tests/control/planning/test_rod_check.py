@@ -10,7 +10,7 @@ import pickle
 import numpy as np
 import pytest
 
-from oralnav.bench.planning import _MeshOracle, _rods
+from oralnav.bench.planning import MeshOracle, sample_rods
 from oralnav.control.errors import PlanningError
 from oralnav.control.planning.fpsm import FPSM, build_fpsm
 from oralnav.control.planning.rod_check import FAST_DZ, RodCheck
@@ -69,9 +69,9 @@ def test_no_false_safe_against_the_mesh(mouth):
     clear is clear of the mesh by python-fcl, and for those the certified clearance is a
     lower bound of the exact one."""
     mesh, model, rc = mouth
-    oracle = _MeshOracle(mesh)
+    oracle = MeshOracle(mesh)
     for k, r in enumerate((0.002, 0.004)):
-        T, _, E = _rods(mesh, model, 400, np.random.default_rng([7, k]))
+        T, _, E = sample_rods(mesh, model, 400, np.random.default_rng([7, k]))
         c = rc.clearances(T, E, r)
         exact = np.array([oracle.clearance(T[i], E[i]) for i in range(len(T))]) - r
         safe = c > 0
@@ -204,9 +204,9 @@ def test_fast_bound_is_below_the_mesh(mouth):
     """In the parametric mouth the fast grid's bound is below the ball at a point and the
     ball below its distance to the mesh (python-fcl), in the cavity and around it."""
     mesh, model, rc = mouth
-    oracle = _MeshOracle(mesh)
+    oracle = MeshOracle(mesh)
     rng = np.random.default_rng(11)
-    T, _, _ = _rods(mesh, model, 200, np.random.default_rng([8, 0]))
+    T, _, _ = sample_rods(mesh, model, 200, np.random.default_rng([8, 0]))
     P = np.concatenate([T, T * [1.3, 1.3, 1.0] + rng.normal(0, 0.001, T.shape)])
     d = np.array([oracle.clearance(p, p + [0, 0, 1e-9]) for p in P])
     balls = np.array([rc.ball(p) for p in P])
@@ -221,7 +221,7 @@ def test_slab_path_is_the_reference_sphere_tracing(mouth):
     decision everywhere (below need the kernel may stop a sample earlier)."""
     mesh, model, rc = mouth
     slab = _slab_only(rc)
-    T, _, E = _rods(mesh, model, 300, np.random.default_rng([9, 0]))
+    T, _, E = sample_rods(mesh, model, 300, np.random.default_rng([9, 0]))
     for r, need in ((0.002, 0.0), (0.004, 0.0005)):
         c = slab.clearances(T, E, r, need)
         ref = np.array([_reference_trace(slab, T[i], E[i], r, need) for i in range(len(T))])
@@ -240,7 +240,7 @@ def test_fast_path_decides_as_the_slab_path(mouth):
     values would lower them by about 0.16 mm here)."""
     mesh, model, rc = mouth
     slab = _slab_only(rc)
-    T, _, E = _rods(mesh, model, 600, np.random.default_rng([7, 3]))
+    T, _, E = sample_rods(mesh, model, 600, np.random.default_rng([7, 3]))
     diff = []
     for r in (0.002, 0.004, 0.006):
         for need in (0.0, 0.0005, 0.002):
@@ -278,7 +278,7 @@ def test_inputs_of_any_form_give_the_same_answers(mouth):
     (3,) all give the float64 answers; a rod end with fewer than 3 values or rods and ends
     of different counts are refused; a non-finite rod is not certified (NaN)."""
     mesh, model, rc = mouth
-    T, _, E = _rods(mesh, model, 30, np.random.default_rng([3, 1]))
+    T, _, E = sample_rods(mesh, model, 30, np.random.default_rng([3, 1]))
     c = rc.clearances(T, E, 0.002)
     assert np.array_equal(rc.clearances(T.tolist(), E.tolist(), 0.002), c)
     assert np.array_equal(rc.clearances(np.asfortranarray(T), E, np.float32(0.002)),
@@ -312,7 +312,7 @@ def test_pickled_check_answers_alike(mouth):
     """A guided plan carries its check to the control process by pickle: the copy gives
     the same answers and still refuses to compile for other argument types."""
     mesh, model, rc = mouth
-    T, _, E = _rods(mesh, model, 20, np.random.default_rng([3, 2]))
+    T, _, E = sample_rods(mesh, model, 20, np.random.default_rng([3, 2]))
     back = pickle.loads(pickle.dumps(rc))
     assert np.array_equal(back.clearances(T, E, 0.002), rc.clearances(T, E, 0.002))
     assert back.clearance(T[0].tolist(), E[0], 0.002) == rc.clearance(T[0], E[0], 0.002)

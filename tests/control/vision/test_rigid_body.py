@@ -21,7 +21,7 @@ from oralnav.control.vision.rigid_body import (
     T_TAG_OPENCV_MARKER,
     BodyPose,
     RigidBody,
-    _cached_detector,
+    cached_detector,
     default_detector_parameters,
     detect_tag_list,
     detect_tags,
@@ -328,13 +328,13 @@ def test_detect_tags_drops_duplicates():
 def test_detector_cached_per_dictionary_and_params_honoured():
     """rigid bodies: one detector per dictionary is kept (per thread); explicit parameters
     build their own and are honoured; the default refines corners to sub-pixel."""
-    assert _cached_detector("DICT_4X4_50") is _cached_detector("DICT_4X4_50")
-    assert _cached_detector("DICT_4X4_50") is not _cached_detector("DICT_ARUCO_ORIGINAL")
+    assert cached_detector("DICT_4X4_50") is cached_detector("DICT_4X4_50")
+    assert cached_detector("DICT_4X4_50") is not cached_detector("DICT_ARUCO_ORIGINAL")
     other = []
-    t = threading.Thread(target=lambda: other.append(_cached_detector("DICT_4X4_50")))
+    t = threading.Thread(target=lambda: other.append(cached_detector("DICT_4X4_50")))
     t.start()
     t.join()
-    assert other[0] is not _cached_detector("DICT_4X4_50")
+    assert other[0] is not cached_detector("DICT_4X4_50")
     p = default_detector_parameters()
     assert p.cornerRefinementMethod == cv2.aruco.CORNER_REFINE_SUBPIX
     img = _marker_image([(3, (40, 60))])
