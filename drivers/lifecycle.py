@@ -49,13 +49,23 @@ class LifecycleState:
     def closed(self) -> bool:
         return self.phase is Phase.CLOSED
 
-    def begin_start(self, refusal: str) -> None:
+    def begin_start(self, refusal: str, *, after_close: str | None = None) -> None:
         """NEW -> STARTING; ``DriverInitError(refusal)`` for a second ``start()`` or one
         after ``close()`` (``refusal`` names the device, as in ``"camera 'left': start()
-        called twice or after close()"``)."""
+        called twice or after close()"``; ``after_close``, when given, is the message for
+        the second case)."""
+        if self.phase is Phase.CLOSED and after_close is not None:
+            raise DriverInitError(after_close)
         if self.phase is not Phase.NEW:
             raise DriverInitError(refusal)
         self.phase = Phase.STARTING
+
+    def abort_start(self) -> None:
+        """STARTING -> NEW after a ``start()`` that failed: the device may be started again
+        (the control process retries an arm it could not reach). A ``close()`` that came
+        meanwhile keeps it CLOSED."""
+        if self.phase is Phase.STARTING:
+            self.phase = Phase.NEW
 
     def finish_start(self) -> bool:
         """STARTING -> RUNNING. False when ``close()`` came while starting: the phase stays

@@ -12,7 +12,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike
 
-from oralnav.checks import rigid_transform
+from oralnav.checks import NumberMessages, positive_number, rigid_transform
 from oralnav.control.motion import step_toward
 
 from .errors import InputError, LimitError
@@ -65,14 +65,14 @@ def _as_points(p: ArrayLike | None, what: str) -> np.ndarray | None:
     return a if len(a) else None
 
 
+#: A speed limit's wording: NaN, infinities and values <= 0 are refused alike.
+_SPEED = NumberMessages(not_finite="{what} must be positive and finite, got {value!r}",
+                        not_positive="{what} must be positive and finite, got {value!r}")
+
+
 def _speed(x: float, what: str) -> float:
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        raise InputError(f"{what} must be a number, got {x!r}") from None
-    if not math.isfinite(v) or v <= 0:
-        raise InputError(f"{what} must be positive and finite, got {x!r}")
-    return v
+    """A speed limit (m/s or rad/s) as a float > 0, or :class:`InputError`."""
+    return positive_number(x, what, InputError, allow_bool=True, messages=_SPEED)
 
 
 class SpeedSettings(Protocol):

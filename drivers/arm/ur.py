@@ -72,6 +72,7 @@ import numpy as np
 
 from ..clock import Clock, WallClock
 from ..errors import DriverError, DriverInitError, DriverIOError
+from ..lifecycle import LifecycleState
 from .base import Arm, ArmCommandError, ArmState
 from .ur_protocol import (
     DASHBOARD_PORT,
@@ -528,8 +529,7 @@ class URArm(Arm):
 
         self._lock = threading.Lock()  # everything below, shared by all threads
         self._cond = threading.Condition(self._lock)
-        self._started = False
-        self._closed = False
+        self._life = LifecycleState()  # changed under _lock
         self._closing = threading.Event()
         self._host: _HostProcess | None = None
         self._connecting = False  # a host is being set up: not ready yet
@@ -558,14 +558,18 @@ class URArm(Arm):
         import anyio.to_thread
 
         with self._lock:
-            if self._started:
-                raise DriverInitError(f"arm {self.name!r}: start() called twice (build a new "
-                                      f"arm after close)")
-            if self._closed:
-                raise DriverInitError(f"arm {self.name!r}: start() after close()")
-        await anyio.to_thread.run_sync(self._connect)
+            self._life.begin_start(f"arm {self.name!r}: start() called twice (build a new "
+                                   f"arm after close)",
+                                   after_close=f"arm {self.name!r}: start() after close()")
+        try:
+            await anyio.to_thread.run_sync(self._connect)
+        except BaseException:
+            with self._lock:
+                self._life.abort_start()  # not reached: start() may be tried again
+            raise
         with self._lock:
-            self._started = True
+            # a close() during the connection leaves it closed; the threads then end at once
+            self._life.finish_start()
             self._closing.clear()
         self._link_thread = threading.Thread(target=self._link_loop, daemon=True,
                                              name=f"ur-arm-{self.name}-link")
@@ -578,14 +582,14 @@ class URArm(Arm):
         import anyio.to_thread
 
         with self._lock:
-            if self._closed:
+            if self._life.closed:
                 return
-            started = self._started
+            started = self._life.running
         if started:
             self.stop()
             await anyio.to_thread.run_sync(self._drain, 1.0 + self.command_timeout)
         with self._lock:
-            self._closed = True
+            self._life.close()
             self._closing.set()
             self._cond.notify_all()
         await anyio.to_thread.run_sync(self._shutdown)
@@ -887,10 +891,9 @@ class URArm(Arm):
 
     def _refusal(self) -> str | None:
         # Why a motion command cannot be obeyed now, or None. Call under the lock.
-        if not self._started:
-            return "not started"
-        if self._closed:
-            return "closed"
+        reason = self._life.refusal()  # "not started" or "closed"
+        if reason is not None:
+            return reason
         s = self._sample
         if not self._link_up() or s is None:
             return "disconnected"
@@ -930,7 +933,7 @@ class URArm(Arm):
 
     def _stop(self) -> None:
         with self._lock:
-            live = self._started and not self._closed
+            live = self._life.running
             reachable = self._link_up()
             # With our control program stopped the controller has stopped the arm already.
             if live and reachable and self._program_running() and self._sample is not None:
@@ -945,7 +948,7 @@ class URArm(Arm):
 
     def kick(self) -> None:
         with self._lock:
-            if not self._started or self._closed or not self._link_up():
+            if not self._life.running or not self._link_up():
                 reason = self._refusal() or "disconnected"
                 raise DriverIOError(f"arm {self.name!r}: kick() failed: arm {reason}")
             if self._watchdog_armed and self._program_running():
@@ -1062,7 +1065,7 @@ class URArm(Arm):
         import anyio.to_thread
 
         with self._lock:
-            if not self._started or self._closed:
+            if not self._life.running:
                 raise DriverIOError(f"arm {self.name!r}: recover() needs a started arm")
         await anyio.to_thread.run_sync(self._recover, unlock_protective_stop, power_on,
                                        brake_release, restart_program, timeout)

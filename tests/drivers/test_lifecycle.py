@@ -68,3 +68,22 @@ def test_close_during_start_wins():
     assert life.finish_start() is False
     assert life.closed and life.close() is False
     assert repr(life) == "LifecycleState(CLOSED)"
+
+
+def test_a_failed_start_may_be_retried_and_a_close_wins():
+    """issue 31, the shared state machine: a start that failed returns to NEW, so the
+    control process may start the device again (a UR controller that was off); a close()
+    during the start keeps it CLOSED, and a start after close() gets its own message."""
+    life = LifecycleState()
+    life.begin_start("twice")
+    life.abort_start()
+    assert life.refusal() == "not started"
+    life.begin_start("twice")            # the retry
+    assert life.finish_start() and life.running
+    other = LifecycleState()
+    other.begin_start("twice")
+    assert other.close()
+    other.abort_start()
+    assert other.closed
+    with pytest.raises(DriverInitError, match="after close"):
+        other.begin_start("twice", after_close="arm 'a': start() after close()")
