@@ -343,8 +343,9 @@ def rss_mib(pid: int) -> float | None:
     return None
 
 
-class DaemonError(RuntimeError):
-    pass
+class DaemonRunError(RuntimeError):
+    """The campaign's oralnavd process did not do what a run needs (exited, never READY,
+    no control process); not the daemon's own ``oralnav.daemon.errors.DaemonError``."""
 
 
 class Daemon:
@@ -387,7 +388,7 @@ class Daemon:
             return ""
 
     def wait_ready(self, timeout: float = START_TIMEOUT_S) -> float:
-        """Seconds until ``GET /status`` says READY; DaemonError if it exits or times out.
+        """Seconds until ``GET /status`` says READY; DaemonRunError if it exits or times out.
         A FAULT latched on the way (a loop that stalls by itself on a busy machine) is
         reset, as an operator would, and kept in :attr:`start_faults`."""
         t0 = time.monotonic()
@@ -396,7 +397,7 @@ class Daemon:
         try:
             while time.monotonic() - t0 < timeout:
                 if not self.alive():
-                    raise DaemonError(f"oralnavd exited ({self.proc.returncode}) before "
+                    raise DaemonRunError(f"oralnavd exited ({self.proc.returncode}) before "
                                       f"READY:\n{self.log_tail()}")
                 try:
                     code, doc = api.get("/status")
@@ -414,7 +415,7 @@ class Daemon:
                 time.sleep(0.2)
         finally:
             api.close()
-        raise DaemonError(f"oralnavd not READY within {timeout:g} s:\n{self.log_tail()}")
+        raise DaemonRunError(f"oralnavd not READY within {timeout:g} s:\n{self.log_tail()}")
 
     def control_pid(self) -> int:
         """The control process: the daemon's child started by multiprocessing's spawn
@@ -428,7 +429,7 @@ class Daemon:
             if comm.startswith("oralnavd-contro") or (b"spawn_main" in cmd
                                                        and b"resource_tracker" not in cmd):
                 return pid
-        raise DaemonError(f"no control process among the children of {self.pid}")
+        raise DaemonRunError(f"no control process among the children of {self.pid}")
 
     def kill_now(self) -> None:
         """SIGKILL the daemon alone, now (from a timer thread; reaped by :meth:`kill`)."""
@@ -529,7 +530,7 @@ class Api:
     def state(self) -> dict[str, Any]:
         code, doc = self.get("/status")
         if code != 200 or not isinstance(doc, dict):
-            raise DaemonError(f"GET /status answered {code}: {doc}")
+            raise DaemonRunError(f"GET /status answered {code}: {doc}")
         return doc
 
 
@@ -701,7 +702,7 @@ def _since(t_event: float | None, bounds: tuple[float, float] | None
 
 def ensure_ready(api: Api, timeout: float = 15.0) -> dict[str, Any]:
     """Bring the cell to READY (reset a latch, abort an interrupted procedure); the last
-    status, DaemonError when it does not get there in time."""
+    status, DaemonRunError when it does not get there in time."""
     t0 = time.monotonic()
     doc = api.state()
     while time.monotonic() - t0 < timeout:
@@ -714,7 +715,7 @@ def ensure_ready(api: Api, timeout: float = 15.0) -> dict[str, Any]:
             return doc
         time.sleep(0.2)
         doc = api.state()
-    raise DaemonError(f"not READY within {timeout:g} s: {doc['safety']['state']} "
+    raise DaemonRunError(f"not READY within {timeout:g} s: {doc['safety']['state']} "
                       f"({doc['safety'].get('reasons')})")
 
 
@@ -889,7 +890,7 @@ def scenario_control_stop(d: Daemon, api: Api, lateness: float, stop_s: float,
     try:
         before = ensure_ready(api)
         out["ready_before_stop"] = True
-    except DaemonError as exc:
+    except DaemonRunError as exc:
         out["ready_before_stop"] = False
         out["not_ready_reason"] = str(exc)
         before = api.state()
@@ -1091,7 +1092,7 @@ def scenario_reset_cycle(api: Api, targets: list[dict[str, Any]],
     ensure_ready(api)
     code, answer = api.post("/targets", {"targets": targets})
     if code != 200:
-        raise DaemonError(f"POST /targets answered {code}: {answer}")
+        raise DaemonRunError(f"POST /targets answered {code}: {answer}")
     rows: list[dict[str, Any]] = []
     resume_codes: Counter[int] = Counter()
     for k in range(cycles):
@@ -1103,7 +1104,7 @@ def scenario_reset_cycle(api: Api, targets: list[dict[str, Any]],
             if sa["state"] != "READY":
                 try:
                     doc = ensure_ready(api, 5.0)
-                except DaemonError as exc:
+                except DaemonRunError as exc:
                     row["error"] = str(exc)
                     rows.append(row)
                     continue
@@ -1246,7 +1247,7 @@ def _targets_of(config: Path) -> list[dict[str, Any]]:
 
     cfg = load_config(config)
     if cfg.cell is None:
-        raise DaemonError(f"{config}: no [cell] sim_cell, so no targets")
+        raise DaemonRunError(f"{config}: no [cell] sim_cell, so no targets")
     return [{"name": n, "p_OM": [float(x) for x in p]} for n, p in cfg.cell.targets_OM.items()]
 
 
@@ -1291,7 +1292,7 @@ def main(out: Path, quick: bool = False, seed: int = 0) -> dict[str, Any]:
                 doc["daemon_a_ready_s"] = round(a.wait_ready(), 1)
                 doc["daemon_a_faults_while_starting"] = a.start_faults
                 ok = True
-            except DaemonError as exc:
+            except DaemonRunError as exc:
                 ok = False
                 for name in ("soak", "bodies", "reset_cycle", "control_stop_sim",
                              "control_kill"):

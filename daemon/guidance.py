@@ -34,6 +34,7 @@ from oralnav.control.guidance.guided_motion import GuidePlan
 from oralnav.control.guidance.virtual_fixture import VirtualFixture
 from oralnav.control.planning.placement import Placement, place
 from oralnav.control.planning.rod_check import RodCheck
+from oralnav.daemon.errors import DaemonError
 from oralnav.safety.errors import StateError
 
 #: The farthest the model's Center frame may sit from the opener marker's origin (m): a
@@ -41,12 +42,12 @@ from oralnav.safety.errors import StateError
 MAX_REGISTRATION_OFFSET = 0.3
 
 
-class GuidePlanError(ValueError):
+class GuidePlanError(DaemonError, ValueError):
     """The plan request is invalid: an unreadable or invalid scene, a planning error, a bad
     registration, or a plan the control channel cannot carry (REST 422)."""
 
 
-class NoSafePlacement(StateError):
+class NoSafePlacement(DaemonError, StateError):
     """The placement found no collision-free feeding target (REST 409); ``placement`` holds
     the least bad one, which must never be followed."""
 
