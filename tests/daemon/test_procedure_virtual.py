@@ -6,6 +6,7 @@ deterministically and faster than real time; every target is reached with a TRE 
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -31,9 +32,16 @@ CAMERA_EVERY = 50        # loop periods per camera frame: 10 Hz at 500 Hz
 SUPERVISE_EVERY = 10     # 50 Hz
 
 
+@functools.cache
+def _config():
+    # one frozen configuration for the module: its camera models are the same objects in
+    # every test, so the renderer's ray maps (cached per camera) are built once, not per test
+    return load_config()
+
+
 class Lockstep:
     def __init__(self) -> None:
-        cfg = load_config()
+        cfg = _config()
         s = cfg.settings
         self.cfg = cfg
         self.clock = VirtualClock(100.0)
