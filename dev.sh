@@ -2,7 +2,7 @@
 # One entry point for a fresh machine: each command creates (or reuses) the virtual
 # environment in .venv, installs the project and what it needs, then runs.
 #   ./dev.sh run     the main job: oralnavd on the embedded simulation default (--demo)
-#   ./dev.sh test    lint + the whole test suite (what CI runs)
+#   ./dev.sh test    lint + the layer rules (import-linter) + the whole test suite (what CI runs)
 #   ./dev.sh bench   the benchmarks (long; writes bench/out/)
 set -euo pipefail
 cd "$(dirname "$0")"
