@@ -89,3 +89,15 @@ def test_the_architecture_map_matches_the_tree():
     assert not missing, f"modules missing from the map: {sorted(missing)}"
     stale = {p for p in named if not (ROOT / p).is_file()}
     assert not stale, f"the map names modules that do not exist: {sorted(stale)}"
+
+
+def test_every_path_the_architecture_page_names_exists():
+    """issue 31: the page's other sections ("where to find", the frame's path, the
+    contracts) name only files and folders that exist."""
+    import re
+
+    doc = (ROOT / "docs" / "architecture.md").read_text()
+    paths = set(re.findall(r"`([a-z_]+/[\w/]*(?:\.py|/))`", doc))
+    assert len(paths) > 40
+    missing = sorted(p for p in paths if not (ROOT / p).exists())
+    assert not missing, f"docs/architecture.md names paths that do not exist: {missing}"
