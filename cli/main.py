@@ -15,6 +15,7 @@
     oralnav bench needle [--trials N] [--seed S] [--workers W] [--quick] [--tracking]
                          --out DIR [--json]
     oralnav bench faults [--quick] --out DIR [--json]
+    oralnav bench busy-demo --out DIR [--runs N] [--busy N] [--json]
 
 Every ``--json`` prints exactly one JSON object on stdout; progress and logs go to stderr.
 Exit status: 0 done, 2 bad input (the message names the file and key), 1 anything else.
@@ -413,6 +414,28 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_busy_demo(args: argparse.Namespace) -> int:
+    """``oralnav bench busy-demo``: exit 0 when every run passed, 1 otherwise."""
+    from oralnav.bench import busy_demo
+
+    if args.runs < 1:
+        raise UsageError(f"--runs must be at least 1, got {args.runs}")
+    if args.busy is not None and args.busy < 0:
+        raise UsageError(f"--busy must be 0 or more, got {args.busy}")
+    doc = busy_demo.main(Path(args.out), runs=args.runs, busy=args.busy)
+    s = {k: v for k, v in doc.items() if k != "results"}
+    if args.json:
+        print(json.dumps(s))
+    else:
+        print(f"main job on a busy machine ({doc['busy']} busy processes, {doc['cpus']} "
+              f"CPUs): {doc['passed']}/{doc['runs']} passed; duration median "
+              f"{s['duration_s']['median']} s, max {s['duration_s']['max']} s; TRE max "
+              f"{s['tre_max_mm']} mm; slowest tracking {s['tracking_hz_min']} frames/s")
+        for why in s["failures"]:
+            print(f"  failed: {why}")
+    return 0 if doc["passed"] == doc["runs"] else 1
+
+
 def cmd_bench_faults(args: argparse.Namespace) -> int:
     require_bench_extra()
     from oralnav.bench import faults
@@ -561,6 +584,15 @@ def build_parser() -> argparse.ArgumentParser:
     fa.add_argument("--out", required=True, help="folder for faults.json and faults.png")
     fa.add_argument("--json", action="store_true", help="print the targets as one JSON object")
     fa.set_defaults(func=cmd_bench_faults)
+    bd = bn.add_parser("busy-demo", help="the main job (oralnavd --demo) run again and again "
+                                         "while other processes keep every core busy "
+                                         "(about 40 s a run on 2 cores)")
+    bd.add_argument("--runs", type=int, default=10, help="demo runs (default 10)")
+    bd.add_argument("--busy", type=int, default=None,
+                    help="busy processes (default: one per CPU)")
+    bd.add_argument("--out", required=True, help="folder for busy_demo.json and each run's log")
+    bd.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    bd.set_defaults(func=cmd_bench_busy_demo)
     return p
 
 

@@ -25,8 +25,9 @@ Matrix = list[list[Float]]
 Vec3 = tuple[Float, Float, Float]
 
 
-def _rigid(v: Matrix, info: ValidationInfo) -> Matrix:
-    """A 4x4 rigid transform (bottom row [0, 0, 0, 1], rotation orthonormal to 1e-6)."""
+def rigid_matrix(v: Matrix, info: ValidationInfo) -> Matrix:
+    """Field validator: a 4x4 rigid transform (bottom row [0, 0, 0, 1], rotation
+    orthonormal to 1e-6)."""
     if len(v) != 4 or any(len(r) != 4 for r in v):
         raise ValueError("must be a 4x4 matrix (4 rows of 4 numbers)")
     try:
@@ -46,14 +47,14 @@ class GeometryEntry(Strict):
     T_OM_En: Matrix
 
     _check = field_validator("T_B_C", "T_tcp_RM", "T_tcp_E0", "T_E_EM", "T_B_OM",
-                             "T_OM_En")(_rigid)
+                             "T_OM_En")(rigid_matrix)
 
 
 class PosesEntry(Strict):
     home_T_B_tcp: Matrix
     intraoral_T_B_tcp: Matrix
 
-    _check = field_validator("home_T_B_tcp", "intraoral_T_B_tcp")(_rigid)
+    _check = field_validator("home_T_B_tcp", "intraoral_T_B_tcp")(rigid_matrix)
 
 
 class MouthEntry(Strict):

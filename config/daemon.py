@@ -13,15 +13,17 @@ from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
+from oralnav.control.geometry import invert
 from oralnav.control.vision.camera import Rig
 from oralnav.control.vision.markers import MarkerField
 from oralnav.sim.world.cell import CellConfig
 from oralnav.sim.world.scene import Scene
 
 from .calibration import Calibration, load_calibration
-from .cell import CellFile, load_cell_config
+from .cell import CellFile, Matrix, load_cell_config, rigid_matrix
 from .errors import ConfigError
 from .fields import FieldsFile, load_fields
 from .hardware import ArmSection, CameraSection, EffectorSection, StereoSection
@@ -76,7 +78,12 @@ class SafetySection(Strict):
 
     max_speed: Annotated[Float, Field(gt=0)] = ISO_REDUCED_SPEED
     near_patient_speed: Annotated[Float, Field(gt=0)] = 0.05
+    # s: a goal computed from poses older than this is not followed (the arm holds until
+    # a fresh one); a guided insertion's opener pose older than this stops the arm
     stale_pose: Annotated[Float, Field(gt=0, le=1.0)] = 0.1
+    # s: a pose the current stage steers by that has not come for this long is lost: a
+    # latched stop (FAULT). Slow poses only slow the motion ([navigation] max_step)
+    pose_timeout: Annotated[Float, Field(gt=0, le=10.0)] = 0.5
     # rad/s; the ISO speed bounds the TCP's linear speed only, so rotation has its own
     max_angular_speed: Annotated[Float, Field(gt=0, le=3.14159)] = 0.5
     near_patient_angular_speed: Annotated[Float, Field(gt=0, le=3.14159)] = 0.2
@@ -100,6 +107,15 @@ class SafetySection(Strict):
     workspace_max: tuple[Float, Float, Float] = (0.85, 0.85, 1.0)
 
     _check_iso = field_validator("max_speed", "near_patient_speed")(_iso_speed)
+
+    @field_validator("pose_timeout")
+    @classmethod
+    def _lost_after_stale(cls, v: float, info: ValidationInfo) -> float:
+        stale = info.data.get("stale_pose")
+        if stale is not None and v < stale:
+            raise ValueError(f"pose_timeout ({v} s) must be at least stale_pose ({stale} s): "
+                             "a pose is lost only after it went stale")
+        return v
 
     @field_validator("near_patient_angular_speed")
     @classmethod
@@ -274,6 +290,25 @@ class CalibrationSection(Strict):
     pivot: str | None = None               # the registration pointer's tip ([28])
 
 
+class NavigationSection(Strict):
+    """The two-stage navigation (docs/navigation.md). Lengths in m, angles in degrees."""
+
+    # The intra-oral entry pose: the end-effector zero frame E0 in the opener marker's
+    # frame OM (4x4, m), where the approach (eq. 5) ends and the adjustment (eq. 6) aims.
+    # A plan's choice, so the configuration gives it; on the simulated cell it defaults
+    # to the cell file's intra-oral pose.
+    entry_T_OM_E0: Matrix | None = None
+    # The most the TCP goal may lead the arm per tracked frame (m, deg): motion is
+    # bounded by how often poses come, so slow tracking is slow, safe motion.
+    max_step: Annotated[Float, Field(gt=0, le=0.05)] = 0.005
+    max_turn_deg: Annotated[Float, Field(gt=0, le=30.0)] = 2.0
+    # s: the longest silence of the arm's measured TCP that a frame's capture instant
+    # may be interpolated across (a longer one: the frame is not chained, FAULT)
+    arm_history_gap: Annotated[Float, Field(gt=0, le=0.5)] = 0.05
+
+    _check = field_validator("entry_T_OM_E0")(rigid_matrix)
+
+
 #: The calibration kinds the navigation chain needs (eqs. 5-8).
 NAVIGATION_CALIBRATIONS = ("hand_eye", "endoscope_opener", "effector_zero", "effector_marker")
 
@@ -282,6 +317,7 @@ class DaemonFile(Strict):
     name: str = "oralnav"
     cell: CellSection
     calibration: CalibrationSection | None = None
+    navigation: NavigationSection = NavigationSection()
     control: ControlSection = ControlSection()
     safety: SafetySection = SafetySection()
     inputs: InputsSection = InputsSection()
@@ -325,6 +361,18 @@ class DaemonConfig:
     def missing_calibrations(self) -> list[str]:
         """The navigation chain's calibration kinds the configuration does not name."""
         return [k for k in NAVIGATION_CALIBRATIONS if k not in self.calibrations]
+
+    def entry_T_OM_E0(self) -> np.ndarray | None:
+        """The intra-oral entry pose ``T_OM_E0`` (4x4, m): ``[navigation] entry_T_OM_E0``,
+        else, on the simulated cell, the cell file's intra-oral TCP pose taken to the
+        opener; None when neither is given (navigation then refuses to start)."""
+        given = self.settings.navigation.entry_T_OM_E0
+        if given is not None:
+            return np.array(given, dtype=float)
+        if self.cell is None:
+            return None
+        g = self.cell.geometry
+        return invert(g.T_B_OM) @ self.cell.intraoral_T_B_tcp @ g.T_tcp_E0
 
 
 def _check_cameras(path: Path, doc: DaemonFile, rig: Rig, endo: Rig | None) -> None:

@@ -38,6 +38,7 @@ from typing import Any
 import anyio
 import numpy as np
 
+from oralnav.control.navigation.arm_trajectory import ArmTrajectory
 from oralnav.daemon.guide_session import GUIDE_POSE, GuideSession
 from oralnav.daemon.needle_session import NeedleSession
 from oralnav.daemon.poses import PoseStore
@@ -92,6 +93,9 @@ class DaemonCore:
         #: the operator audit log (``daemon/audit.py``), when the service has one: its
         #: commands without a recorded outcome and records waiting show in the status
         self.audit: Any = None
+        #: what must hold for a procedure to start: each says why not ("" when it may);
+        #: the service adds the navigation's (no calibration, no cameras, ...)
+        self.start_checks: list[Callable[[], str]] = []
 
     # -- the latched stop's handler (sync, never blocks) ---------------------------------
     def _stop_robot(self, record: Any) -> None:
@@ -131,6 +135,12 @@ class DaemonCore:
         """A copy of the newest pose record of ``name`` (``T`` 4x4 in m, ``stamp`` in s,
         ``frame``, ...), or None before its first pose."""
         return self.pose_store.pose(name)
+
+    def arm_trajectory(self, max_gap: float) -> ArmTrajectory:
+        """The arm's measured TCP history as the control loop recorded it (base frame,
+        m; times on the daemon's monotonic clock), interpolated across gaps of at most
+        ``max_gap`` s. Raises ``TimingError`` when its timestamps do not increase."""
+        return ArmTrajectory.from_samples(self.control.read_arm_history(), max_gap)
 
     # -- supervisor task -----------------------------------------------------------------
     def supervise_once(self, now: float) -> None:
@@ -238,11 +248,23 @@ class DaemonCore:
             audit = {"path": str(self.audit.path), "incomplete": self.audit.incomplete,
                      "pending": self.audit.pending}
         return jsonable({"safety": sup, "control_loop": loop, "inputs": inputs,
-                         "audit": audit,
+                         "audit": audit, "latency_ms": self.latency_ms(),
                          "rates_hz": rates,
                          "uptime_s": self.clock() - self._started,
                          "procedure": dict(self.procedure_info),
                          "guidance": self.guide_session.status(st)})
+
+    def latency_ms(self) -> dict[str, Any] | None:
+        """Capture-to-command latency over the last goals the loop servoed (up to 512):
+        from a frame's capture instant to the first servo command computed from it, in
+        ms: ``{"n", "p50", "p99", "max"}``; None before the first."""
+        rec = getattr(self.control, "read_latency", None)
+        lat = rec() if rec is not None else []
+        if len(lat) == 0:
+            return None
+        ms = (lat["t_command"] - lat["t_capture"]) * 1e3
+        return {"n": int(len(ms)), "p50": float(np.percentile(ms, 50)),
+                "p99": float(np.percentile(ms, 99)), "max": float(ms.max())}
 
     def poses(self) -> dict[str, Any]:
         now = self.clock()
@@ -308,6 +330,10 @@ class DaemonCore:
             if self.guide_session.running:
                 raise StateError("cannot start the procedure: a guided insertion is running "
                                  "(POST /guide/stop first)")
+            for check in self.start_checks:
+                why = check()
+                if why:  # never RUNNING with nothing that would move the robot
+                    raise StateError(why)
             sup.start(now, who)
         elif action == "pause":
             sup.pause(now, who)

@@ -15,17 +15,18 @@ import numpy as np
 
 #: The whole procedure must finish within this (s); the daemon stops the robot otherwise.
 DEMO_TIMEOUT_S = 240.0
+#: The cell must be READY this long (s) after the API answers.
+READY_TIMEOUT_S = 60.0
 
 
 def _say(msg: str) -> None:
     print(f"oralnavd demo: {msg}", file=sys.stderr, flush=True)
 
 
-async def play_operator(core: Any, port: int, clear: dict[str, str], nav: Any,
-                        result: dict[str, Any]) -> None:
-    """Drive one procedure through the API; fill ``result``."""
-    if nav is None:
-        raise RuntimeError("--demo needs [cell] sim_cell in the configuration")
+async def play_operator(port: int, clear: dict[str, str],
+                        targets_OM: dict[str, np.ndarray], result: dict[str, Any]) -> None:
+    """Drive one procedure through the API with the suture targets ``targets_OM`` (name ->
+    (3,) m, opener frame); fill ``result``."""
     if "operator" not in clear:
         raise RuntimeError("--demo needs the generated demo tokens: leave [api] tokens_file "
                            "unset")
@@ -33,12 +34,17 @@ async def play_operator(core: Any, port: int, clear: dict[str, str], nav: Any,
     t0 = time.monotonic()
     async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{port}", headers=head,
                                  timeout=5.0) as api:
-        while (await api.get("/status")).json()["safety"]["state"] != "READY":
-            if time.monotonic() - t0 > 30:
-                raise RuntimeError("the cell did not become READY within 30 s")
+        while True:
+            safety = (await api.get("/status")).json()["safety"]
+            if safety["state"] == "READY":
+                break
+            if time.monotonic() - t0 > READY_TIMEOUT_S:
+                why = safety.get("not_ready_reason") or safety.get("reasons")
+                raise RuntimeError(f"the cell did not become READY within "
+                                   f"{READY_TIMEOUT_S:g} s (state {safety['state']}: {why})")
             await anyio.sleep(0.1)
         targets = [{"name": n, "p_OM": [float(x) for x in p]}
-                   for n, p in nav.cell.config.targets_OM.items()]
+                   for n, p in targets_OM.items()]
         r = await api.post("/targets", json={"targets": targets})
         r.raise_for_status()
         _say(f"registered {len(targets)} suture targets in the opener frame")
@@ -50,6 +56,10 @@ async def play_operator(core: Any, port: int, clear: dict[str, str], nav: Any,
         while True:
             st = (await api.get("/status")).json()
             proc, state = st.get("procedure", {}), st["safety"]["state"]
+            # kept as it goes, so a run that fails later still says where it stood
+            result.update(state=state, stage=proc.get("stage"),
+                          reasons=st["safety"].get("reasons"),
+                          duration_s=time.monotonic() - start)
             line = (f"{state} stage {proc.get('stage', '-')}"
                     + (f", target {proc['target']}" if proc.get("target") else "")
                     + (f", error {proc['error_mm']:.3f} mm"
@@ -66,6 +76,7 @@ async def play_operator(core: Any, port: int, clear: dict[str, str], nav: Any,
         result.update(
             state=state, done=bool(proc.get("done")), tre_mm=proc.get("tre_mm", {}),
             duration_s=time.monotonic() - start, rates_hz=st.get("rates_hz", {}),
+            latency_ms=st.get("latency_ms"),
             control_loop=st.get("control_loop", {}),
             reasons=st["safety"].get("reasons"))
     tre = list(result["tre_mm"].values())
@@ -85,8 +96,17 @@ def print_result(result: dict[str, Any]) -> None:
         print(f"  mean TRE {result['tre_mean_mm']:.3f} mm, max {result['tre_max_mm']:.3f} mm")
     loop = result.get("control_loop", {})
     rates = result.get("rates_hz", {})
-    print(f"  tracking {rates.get('tracking', 0):.1f} frames/s (stereo pair + endoscope, "
-          f"rendered and tracked on this machine); control loop {loop.get('periods', 0)} "
-          f"periods, p99 period error {loop.get('period_error_p99_ms') or 0.0:.3f} ms")
+    tracked = ", ".join(f"{name.removeprefix('tracking ')} {hz:.1f}"
+                        for name, hz in rates.items() if name.startswith("tracking"))
+    print(f"  tracking (frames/s, rendered and tracked on this machine): {tracked or '-'}; "
+          f"control loop {loop.get('periods', 0)} periods, p99 period error "
+          f"{loop.get('period_error_p99_ms') or 0.0:.3f} ms")
+    lat = result.get("latency_ms")
+    if lat:
+        print(f"  capture-to-command latency p50 {lat['p50']:.1f} ms, p99 {lat['p99']:.1f} ms "
+              f"over {lat['n']} goals (the simulated camera's rendering included)")
     if not result.get("done"):
-        print(f"  stopped because: {result.get('reasons')}")
+        if result.get("error"):
+            print(f"  failed: {result['error']}")
+        if result.get("reasons"):
+            print(f"  stopped because: {result['reasons']}")

@@ -138,7 +138,7 @@ class GuideSession:
                                  "or is stopped")
             T_B_F, stamp = self._model_frame(draft)
             age = now - stamp
-            limit = self.watchdogs.poses.limit
+            limit = self.watchdogs.stale_pose  # older, and the loop's GUIDE check stops it
             if age > limit:
                 raise StateError(f"cannot start guidance: the opener pose ({GUIDE_POSE}) is "
                                  f"{age:.2f} s old (limit {limit:g} s)")

@@ -110,8 +110,8 @@ def run(argv: Sequence[str] | None = None) -> int:
         try:
             rc = anyio.run(lambda: run_service(
                 cfg, args.api_port,
-                on_ready=lambda core, p, clear, nav: play_operator(core, p, clear, nav,
-                                                                   result)))
+                on_ready=lambda core, p, clear, nav: play_operator(
+                    p, clear, dict(cfg.cell.targets_OM), result)))
         except Exception as exc:  # the job's own failure (an ExceptionGroup from the tasks)
             leaves = exc.exceptions if isinstance(exc, ExceptionGroup) else (exc,)
             _log("demo failed: " + "; ".join(str(e) for e in leaves))

@@ -1,79 +1,83 @@
-"""Capture -> tracking -> navigation, one task of the daemon's task group.
+"""The two-stage navigation as a listener of the capture pipeline, the same on every cell.
 
-Each round reads one synchronised set of frames (stereo pair and endoscope), tracks the
-fields in a worker thread (stereo: robot, effector, opener; endoscope: effector), reports
-the poses and frame counters to the core (watchdogs, /poses), and, while the procedure
-runs, turns them into the control loop's goal through the two-stage navigator
-(``control/navigation/navigator.py``). On the simulated cell it also measures what the robot reached
-against ground truth: each suture target's TRE (eq. 21: the distance between where the
-end-effector truly is and where the target truly is, when the navigator says "reached").
+After each tracked round (``daemon/capture_task.py``) that carries the pose the current
+stage steers by (``T_C_RM`` while approaching, ``T_En_EM`` inside the mouth), and while the
+procedure runs, :class:`NavigationTask` turns the pose store's newest poses into the
+control loop's goal through the two-stage navigator (``control/navigation/navigator.py``).
+It reads only the pose store, the arm's measured history (the control loop's), the
+configuration and the calibration files: no simulator object.
+
+- **Time.** The navigator chains a tracked pose with the TCP pose (eqs. 5, 6, 8), so it is
+  given the TCP pose *at that pose's capture instant*, interpolated in the arm's measured
+  history (``control/navigation/arm_trajectory.py``). A frame the history cannot place
+  (older than it, inside a gap, or not reported by the arm within ``ARM_WAIT_S``) is a
+  FAULT naming why, never a pose chained across instants that do not match.
+- **Slow sight slows the robot.** The goal sent to the loop leads the arm's newest
+  measured TCP by at most ``[navigation] max_step`` and ``max_turn_deg`` per tracked
+  frame, so the arm moves at most that far on what one frame showed: slow tracking is
+  slow motion; only poses that stop coming (the stale-pose watchdog) stop the robot.
+- **Refusal.** :meth:`NavigationTask.refusal` says why a procedure cannot run on this
+  cell (no navigation calibration, no entry pose, a stage whose poses no camera tracks);
+  the core refuses ``POST /procedure/start`` with it (409).
+- **Observers.** ``on_reached(target, stamp) -> TRE in mm or None`` callbacks measure what
+  was reached; only the simulated cell attaches one (``daemon/sim_cell.py``, ground truth).
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import threading
-import time
-from collections.abc import Callable, Mapping
-from typing import Any
+from collections.abc import Callable, Mapping, Sequence
 
 import anyio
-import anyio.to_thread
 import numpy as np
 
 from oralnav.config.calibration import Calibration
-from oralnav.config.daemon import NAVIGATION_CALIBRATIONS
+from oralnav.config.daemon import NAVIGATION_CALIBRATIONS, NavigationSection
 from oralnav.control.geometry import invert
+from oralnav.control.motion import step_toward
+from oralnav.control.navigation.arm_trajectory import ArmTrajectory, TimingError
 from oralnav.control.navigation.navigator import NavCalibration, TwoStageNavigator
-from oralnav.control.vision.tracker import Tracker
+from oralnav.daemon.capture_task import TrackedRound
 from oralnav.daemon.core import DaemonCore
 from oralnav.safety.states import SafetyState
-from oralnav.sim.world.cell import SimCell
+from oralnav.sim.world.cell import CellConfig
+
+__all__ = ["ARM_WAIT_S", "STEERING_POSES", "NavigationTask", "nav_calibration",
+           "sim_calibration"]
 
 log = logging.getLogger(__name__)
-
 
 #: The poses each navigation stage steers by: their staleness stops the robot.
 STEERING_POSES = {"approach": {"T_C_RM", "T_C_OM"}, "adjust": {"T_C_OM", "T_En_EM"},
                   "targets": {"T_C_OM", "T_En_EM"}}
+#: The pose whose fresh capture makes a navigation step, by stage (the one that moves).
+MOVING_POSE = {"approach": "T_C_RM", "adjust": "T_En_EM", "targets": "T_En_EM"}
+#: Every pose some stage needs; a cell that tracks none of one refuses to start.
+NEEDED_POSES = ("T_C_RM", "T_C_OM", "T_En_EM")
+#: How long (s) a step waits for the arm to report a frame's capture instant: the arm
+#: reports every period (2-8 ms), so a longer wait means its reports stopped.
+ARM_WAIT_S = 0.1
+
+#: ``(target name, capture instant s) -> TRE mm or None``: a measurement of what was
+#: reached (the simulated cell's ground truth).
+ReachedObserver = Callable[[str, float], float | None]
 
 
-class ArmProbe:
-    """The arm pose source the simulated cell renders from: the control loop's newest
-    measured TCP, remembered so navigation uses the pose of the same instant."""
-
-    def __init__(self, core: DaemonCore, home: np.ndarray) -> None:
-        self.core = core
-        self._last = np.array(home, dtype=float)
-        self._lock = threading.Lock()
-
-    def __call__(self) -> np.ndarray:
-        st = self.core.control.read_status()
-        with self._lock:
-            if st is not None and int(st["periods"]) > 0:
-                self._last = np.array(st["T_B_tcp"])
-            return self._last.copy()
-
-    def wrist(self) -> np.ndarray:
-        st = self.core.control.read_status()
-        return np.zeros(4) if st is None else np.array(st["wrist"])
-
-
-def sim_calibration(cell: SimCell) -> NavCalibration:
+def sim_calibration(cell: CellConfig) -> NavCalibration:
     """The simulated cell's true geometry as a calibration: what a perfect calibration
     would measure. Used only for kinds the configuration names no file for."""
-    g = cell.config.geometry
+    g = cell.geometry
     return NavCalibration(T_B_C=g.T_B_C, T_RM_E0=invert(g.T_tcp_RM) @ g.T_tcp_E0,
                           T_OM_En=g.T_OM_En, T_EM_E=invert(g.T_E_EM))
 
 
-def nav_calibration(calibrations: Mapping[str, Calibration], cell: SimCell | None = None
+def nav_calibration(calibrations: Mapping[str, Calibration], cell: CellConfig | None = None
                     ) -> NavCalibration:
     """The navigation chain's calibration from the configuration's files (kind ->
-    :class:`Calibration`); on the simulated cell, a kind without a file falls back to the
-    cell's truth (the service logs which). Raises ``KeyError`` naming the missing kinds
-    otherwise."""
+    :class:`Calibration`); on the simulated cell (its cell file), a kind without a file
+    falls back to the cell's truth (the service logs which). Raises ``KeyError`` naming
+    the missing kinds otherwise."""
     missing = [k for k in NAVIGATION_CALIBRATIONS if k not in calibrations]
     if missing and cell is None:
         raise KeyError(f"no calibration file for {', '.join(missing)} ([calibration] in the "
@@ -91,109 +95,107 @@ def nav_calibration(calibrations: Mapping[str, Calibration], cell: SimCell | Non
 
 
 class NavigationTask:
-    """See the module docstring."""
+    """See the module docstring.
 
-    def __init__(self, core: DaemonCore, cell: SimCell, cameras: Any, probe: ArmProbe,
-                 *, calibration: NavCalibration | None = None,
-                 progress: Callable[[str], None] | None = None) -> None:
-        self.core, self.cell, self.cameras, self.probe = core, cell, cameras, probe
-        # the configuration's calibration files, else the cell's truth
-        self.calibration = calibration or sim_calibration(cell)
+    Args:
+        core: the daemon core (pose store, arm history, safety state, goal).
+        calibration: the navigation chain's calibration, or None when the cell has none
+            (then every start is refused, saying so).
+        entry_T_OM_E0: the intra-oral entry pose (4x4, m, opener frame), or None (refused).
+        settings: ``[navigation]`` (per-frame step, arm-history gap).
+        tracked: every pose the cell's cameras can publish (the pipeline's).
+        progress: where stage changes and reached targets are said.
+        observers: measurements of what was reached (only the simulated cell's).
+        no_calibration: why ``calibration`` is None, for the refusal.
+    """
+
+    def __init__(self, core: DaemonCore, *, calibration: NavCalibration | None,
+                 entry_T_OM_E0: np.ndarray | None, settings: NavigationSection,
+                 tracked: set[str], progress: Callable[[str], None] | None = None,
+                 observers: Sequence[ReachedObserver] = (), no_calibration: str = "") -> None:
+        self.core = core
+        self.calibration = calibration
+        self.entry = None if entry_T_OM_E0 is None else np.array(entry_T_OM_E0, dtype=float)
+        self.settings = settings
+        self.tracked = set(tracked)
         self.progress = progress or (lambda msg: log.info("%s", msg))
-        self.stereo = Tracker(cell.stereo_rig, list(cell.fields), method="nvgba",
-                              mode="predict")
-        eff = [f for f in cell.fields if f.name == cell.config.effector]
-        self.endo = Tracker(cell.endoscope_rig, eff, method="nvgba", mode="predict")
+        self.observers = list(observers)
+        self.no_calibration = no_calibration
         self.navigator: TwoStageNavigator | None = None
         self.tre_mm: dict[str, float] = {}
-        self._frames = 0
-        self._t0 = time.monotonic()
 
-    def _new_navigator(self) -> TwoStageNavigator:
-        cfg = self.cell.config
-        g = cfg.geometry
-        T_OM_E0_entry = invert(g.T_B_OM) @ cfg.intraoral_T_B_tcp @ g.T_tcp_E0
-        targets = {t.name: np.array(t.p_OM) for t in self.core.targets()}
-        return TwoStageNavigator(self.calibration, T_OM_E0_entry, targets)
+    # -- what the cell can do ------------------------------------------------------------
+    def refusal(self) -> str:
+        """Why a procedure cannot run on this cell ("" when it can)."""
+        if self.calibration is None:
+            return f"cannot start: no navigation calibration ({self.no_calibration})"
+        if self.entry is None:
+            return ("cannot start: no intra-oral entry pose ([navigation] entry_T_OM_E0 in "
+                    "the configuration)")
+        if not self.tracked:
+            return "cannot start: no camera is configured to track the cell ([cameras.*])"
+        lost = [p for p in NEEDED_POSES if p not in self.tracked]
+        if lost:
+            return ("cannot start: no camera tracks " + ", ".join(lost) + " (the approach "
+                    "needs the stereo rig with the robot and opener fields, the intra-oral "
+                    "stages the endoscope with the effector field)")
+        return ""
 
-    def _track(self, frames: dict[str, Any]) -> tuple[dict, dict]:
-        stereo = {n: f.image for n, f in frames.items() if n in self.cell.stereo_rig.names}
-        endo = {n: f.image for n, f in frames.items() if n in self.cell.endoscope_rig.names}
-        return self.stereo.track(stereo), self.endo.track(endo)
-
-    async def run(self, *, task_status: anyio.abc.TaskStatus[None] =
-                  anyio.TASK_STATUS_IGNORED) -> None:
-        async with self.cameras:
-            task_status.started()
-            while True:
-                frames = await self.cameras.read()
-                await self._round(frames)
-
-    async def _round(self, frames: dict[str, Any]) -> None:
-        core, cfg = self.core, self.cell.config
-        stamp = next(iter(frames.values())).timestamp
-        T_B_tcp = self.cell.truth()["T_B_tcp"]  # the arm pose this capture rendered
-        for name, f in frames.items():
-            core.camera_frame(name, f.counter)
-        stereo, endo = await anyio.to_thread.run_sync(self._track, frames)
-        self._frames += 1
-        core.set_rate("tracking", self._frames / max(time.monotonic() - self._t0, 1e-9))
-        names = {cfg.robot: "RM", cfg.opener: "OM", cfg.effector: "EM"}
-        for name, est in stereo.items():
-            core.publish_pose(f"T_C_{names.get(name, name)}", est.T_ref_field, stamp,
-                              frame="C", corners=est.corners,
-                              sigma_m=est.position_sigma_m,
-                              sigma_deg=est.rotation_sigma_deg)
-        for est in endo.values():
-            core.publish_pose("T_En_EM", est.T_ref_field, stamp, frame="En",
-                              corners=est.corners, sigma_m=est.position_sigma_m,
-                              sigma_deg=est.rotation_sigma_deg)
+    # -- one tracked round ---------------------------------------------------------------
+    async def on_tracked(self, rnd: TrackedRound) -> None:
+        """A listener of the capture pipeline: one navigation step when ``rnd`` carries
+        the pose the current stage steers by and the procedure runs."""
+        core = self.core
         try:
-            self._navigate(stereo, endo, T_B_tcp, stamp)
-        except Exception as exc:  # a navigation failure stops the robot, not the daemon
-            log.exception("navigation failed")
-            core.supervisor.fault(core.clock(), "navigation", f"{type(exc).__name__}: {exc}")
-        stage = self.navigator.stage if self.navigator is not None else None
-        # an interrupted procedure keeps its navigator, but steers nothing until resumed
-        steering = core.supervisor.state in (SafetyState.RUNNING, SafetyState.PAUSED)
-        core.watch_poses(STEERING_POSES.get(stage, set()) if steering else set())
+            await self._step(rnd)
+        finally:
+            stage = self.navigator.stage if self.navigator is not None else None
+            # an interrupted procedure keeps its navigator, but steers nothing until resumed
+            steering = core.supervisor.state in (SafetyState.RUNNING, SafetyState.PAUSED)
+            core.watch_poses(STEERING_POSES.get(stage, set()) if steering else set())
 
-    def _navigate(self, stereo: dict, endo: dict, T_B_tcp: np.ndarray, stamp: float) -> None:
-        core, cfg = self.core, self.cell.config
-        if core.supervisor.state is not SafetyState.RUNNING:
-            if (core.supervisor.state is not SafetyState.PAUSED
-                    and core.supervisor.interrupted is None):
+    async def _step(self, rnd: TrackedRound) -> None:
+        core = self.core
+        state = core.supervisor.state
+        if state is not SafetyState.RUNNING:
+            if state is not SafetyState.PAUSED and core.supervisor.interrupted is None:
                 # a new start begins a new procedure; one a stop interrupted is kept, to
                 # be resumed from its current target (or aborted) after the reset
                 self.navigator = None
             return
+        if self.calibration is None or self.entry is None:  # start was refused; belt
+            core.supervisor.fault(core.clock(), "navigation", self.refusal())
+            return
         if self.navigator is None:
-            self.navigator = self._new_navigator()
+            targets = {t.name: np.array(t.p_OM) for t in core.targets()}
+            self.navigator = TwoStageNavigator(self.calibration, self.entry, targets)
             self.tre_mm = {}
             core.procedure_info.clear()
             self.progress("stage approach: extra-oral, robot marker (eq. 5)")
-
-        def pose(d: dict, name: str) -> np.ndarray | None:
-            e = d.get(name)
-            # as tracked: rigid to about 1e-15, and the chains check it (a pose that is not
-            # rigid is a navigation failure that stops the robot, never a guess)
-            return None if e is None else e.T_ref_field
-
         nav = self.navigator
+        moving = MOVING_POSE.get(nav.stage)
+        if moving is None or moving not in rnd.poses:
+            return  # this round does not show what the stage steers by
+        stamp = rnd.poses[moving]
+        poses = {n: self._pose(n, stamp if n == moving else None) for n in NEEDED_POSES}
+        opener = core.pose("T_C_OM")
+        if opener is None or stamp - opener["stamp"] > core.watchdogs.stale_pose:
+            # the head is taken as still only within stale_pose: an older opener pose
+            # steers nothing (the last goal goes stale and the arm holds; pose_timeout
+            # stops it if the opener does not come back)
+            return
+        T_B_tcp = await self._arm_at(stamp)
+        if T_B_tcp is None:
+            return
         before = nav.stage
-        step = nav.update(pose(stereo, cfg.robot), pose(stereo, cfg.opener),
-                          pose(endo, cfg.effector), T_B_tcp)
+        step = nav.update(poses["T_C_RM"] if moving == "T_C_RM" else None, poses["T_C_OM"],
+                          poses["T_En_EM"] if moving == "T_En_EM" else None, T_B_tcp)
         info = core.procedure_info
         info.update(stage=step.stage, error_mm=step.error_m * 1e3,
                     error_deg=math.degrees(step.error_rad), target=step.target,
                     tre_mm=dict(self.tre_mm))
         if step.reached:
-            truth = self.cell.truth()
-            p_true = self.cell.targets_B()[step.reached]
-            self.tre_mm[step.reached] = float(np.linalg.norm(truth["T_B_E"][:3, 3] - p_true)) * 1e3
-            info["tre_mm"] = dict(self.tre_mm)
-            self.progress(f"reached {step.reached}: TRE {self.tre_mm[step.reached]:.3f} mm "
-                          "against ground truth")
+            self._reached(step.reached, stamp)
         if step.stage != before:
             self.progress({"adjust": "stage adjust: intra-oral, endoscope (eq. 6)",
                            "targets": "stage targets: suture targets followed in the base "
@@ -204,6 +206,55 @@ class NavigationTask:
             info["done"] = True
             core.supervisor.abort(core.clock(), "navigator", "procedure complete")
             return
-        if step.goal is not None:
-            T_B_OM = self.cell.config.geometry.T_B_OM
-            core.set_goal(step.goal, stamp, near_point=T_B_OM[:3, 3], wrist=np.zeros(4))
+        if step.goal is not None and poses["T_C_OM"] is not None:
+            goal = self._bounded(step.goal)
+            near = (self.calibration.T_B_C @ poses["T_C_OM"])[:3, 3]  # the tracked opener
+            # the goal is as old as the oldest pose behind it
+            core.set_goal(goal, min(stamp, opener["stamp"]), near_point=near,
+                          wrist=np.zeros(4))
+
+    def _pose(self, name: str, stamp: float | None) -> np.ndarray | None:
+        """The store's newest ``name`` (4x4, m), or None; with ``stamp``, only the pose
+        captured then (the round's own)."""
+        rec = self.core.pose(name)
+        if rec is None or (stamp is not None and rec["stamp"] != stamp):
+            return None
+        return rec["T"]
+
+    async def _arm_at(self, stamp: float) -> np.ndarray | None:
+        """The measured TCP at ``stamp`` (4x4, base, m), waiting up to ``ARM_WAIT_S`` for
+        the arm to report that instant; None after a FAULT naming why it cannot be had."""
+        core = self.core
+        gap = self.settings.arm_history_gap
+        with anyio.move_on_after(ARM_WAIT_S):
+            while True:
+                try:
+                    return core.arm_trajectory(gap).at(stamp)
+                except TimingError as exc:
+                    if exc.kind not in ("newer", "empty"):
+                        core.supervisor.fault(core.clock(), "navigation timing", str(exc))
+                        return None
+                    why = str(exc)
+                await anyio.sleep(0.002)
+        core.supervisor.fault(core.clock(), "navigation timing",
+                              f"{why}, after waiting {ARM_WAIT_S * 1e3:.0f} ms")
+        return None
+
+    def _bounded(self, goal: np.ndarray) -> np.ndarray:
+        """``goal`` moved toward from the arm's newest measured TCP by at most the
+        per-frame step and turn (``[navigation] max_step``, ``max_turn_deg``)."""
+        traj: ArmTrajectory = self.core.arm_trajectory(self.settings.arm_history_gap)
+        now = traj.T[-1]
+        s = self.settings
+        out, _ = step_toward(now, goal, s.max_step, math.radians(s.max_turn_deg))
+        return out
+
+    def _reached(self, target: str, stamp: float) -> None:
+        for observe in self.observers:
+            tre = observe(target, stamp)
+            if tre is not None:
+                self.tre_mm[target] = tre
+                self.core.procedure_info["tre_mm"] = dict(self.tre_mm)
+                self.progress(f"reached {target}: TRE {tre:.3f} mm against ground truth")
+                return
+        self.progress(f"reached {target}")

@@ -11,8 +11,10 @@ threads):
 - ``signals``: SIGTERM / SIGINT -> latched stop -> wait for the loop to confirm (at most
   ``STOP_CONFIRM_S``) -> leave the task group.
 
+- ``capture``: the cameras (or the simulated cell's renderer) read, tracked and published
+  into the pose store, each round followed by a navigation step (``build_navigation``).
+
 The control loop runs in its own process (``ControlProcess``); its drivers are built there.
-Camera capture and tracking join this group with the simulated cell (issue 4, next part).
 """
 
 from __future__ import annotations
@@ -159,7 +161,6 @@ async def _run(cfg: DaemonConfig, api_port: int | None, api_sock: Any,
                tls: tuple[str, str] | None, cleanup: list[Callable[[], None]],
                on_ready: Callable[..., Any] | None) -> int:
     """:func:`run_service` once the API's socket is bound."""
-    from oralnav.daemon.navigation_task import ArmProbe, NavigationTask, nav_calibration
     from oralnav.daemon.systemd import Notifier, watchdog_task
 
     s = cfg.settings
@@ -173,30 +174,11 @@ async def _run(cfg: DaemonConfig, api_port: int | None, api_sock: Any,
     core.audit = audit  # its incomplete and pending records show in GET /status
     app = build_app(core, tokens, audit, telemetry_hz=s.api.telemetry_hz,
                     auth_limiter=FailureLimiter(AuthLimits.from_config(s.api)))
-    nav = None
-    if cfg.cell is not None:
-        from oralnav.drivers.camera.sim import SimCameraSet
-        from oralnav.sim.world.cell import SimCell
-
-        probe = ArmProbe(core, cfg.cell.home_T_B_tcp)
-        cell = SimCell(cfg.cell, probe, probe.wrist, core.clock)
+    capture, nav, cell = build_navigation(cfg, core)
+    if cell is not None:
         # before the control loop starts: preparing is seconds of work on every core
         _log("preparing the simulated cell (camera ray maps, textures)...")
         await anyio.to_thread.run_sync(cell.prepare)
-        missing = cfg.missing_calibrations()
-        _log("navigation calibration: " + (
-            f"files of cell {s.calibration.cell!r}" if s.calibration and not missing else
-            f"the simulated cell's truth for {', '.join(missing)}"))
-        nav = NavigationTask(core, cell, SimCameraSet(cell.camera_names, cell), probe,
-                             calibration=nav_calibration(cfg.calibrations, cell),
-                             progress=lambda msg: _log(msg))
-        # guided insertion places the tracked opener in the base with the same hand-eye
-        core.set_hand_eye(nav.calibration.T_B_C)
-    capture = None
-    if cfg.cell is None and s.cameras:
-        from oralnav.daemon.capture_task import HardwareCapture
-
-        capture = HardwareCapture(core, cfg)  # builds the cameras; they open in the group
     keep_off_control_cpu(s.control.cpu)
     await control.start()
     # a thread that wants the GIL waits up to the switch interval (5 ms by default) for
@@ -211,10 +193,7 @@ async def _run(cfg: DaemonConfig, api_port: int | None, api_sock: Any,
         await inputs.start()
         async with anyio.create_task_group() as tg:
             await tg.start(core.supervise)
-            if nav is not None:
-                await tg.start(nav.run)
-            if capture is not None:
-                await tg.start(capture.run)
+            await tg.start(capture.run)
             port = await tg.start(partial(serve, allow_remote=s.api.allow_remote,
                                           sock=api_sock, tls=tls), app,
                                   s.api.host, api_port or s.api.port)
@@ -250,6 +229,57 @@ async def _run(cfg: DaemonConfig, api_port: int | None, api_sock: Any,
         audit.close()
     _log("stopped")
     return 0
+
+
+def build_navigation(cfg: DaemonConfig, core: DaemonCore) -> tuple[Any, Any, Any]:
+    """The capture pipeline and the navigation listening to it, the same for every cell,
+    and the simulated cell (None on a hardware cell). On the simulated cell its renderer
+    is the one source and ground
+    truth observes what is reached; on a hardware cell the configured cameras are the
+    sources. The navigation's refusal guards ``POST /procedure/start``, and its hand-eye
+    places the opener for guided insertion."""
+    from oralnav.daemon.capture_task import CapturePipeline, hardware_sources, sim_sources
+    from oralnav.daemon.navigation_task import NavigationTask, nav_calibration
+
+    s = cfg.settings
+    observers: list[Callable[..., Any]] = []
+    cell = None
+    if cfg.cell is not None:
+        from oralnav.daemon.sim_cell import ArmProbe, SimTruth
+        from oralnav.sim.world.cell import SimCell
+
+        probe = ArmProbe(core, cfg.cell.home_T_B_tcp)
+        cell = SimCell(cfg.cell, probe, probe.wrist, probe.sample_time)
+        cc = cfg.cell
+        roles = {role: cell.config.stereo_scene.placement(getattr(cc, role)).field
+                 for role in ("robot", "opener", "effector")}
+        sources = sim_sources(cell, cell.stereo_rig, cell.endoscope_rig, roles)
+        observers.append(SimTruth(cell))
+    else:
+        sources = hardware_sources(cfg)
+    missing = cfg.missing_calibrations()
+    try:
+        calibration = nav_calibration(cfg.calibrations, cfg.cell)
+        why = ""
+    except KeyError as exc:
+        calibration, why = None, str(exc.args[0])
+    if cfg.cell is not None:
+        _log("navigation calibration: " + (
+            f"files of cell {s.calibration.cell!r}" if s.calibration and not missing else
+            f"the simulated cell's truth for {', '.join(missing)}"))
+    capture = CapturePipeline(core, sources)
+    nav = NavigationTask(core, calibration=calibration, entry_T_OM_E0=cfg.entry_T_OM_E0(),
+                         settings=s.navigation, tracked=capture.pose_names(),
+                         progress=_log, observers=observers, no_calibration=why)
+    capture.listeners.append(nav.on_tracked)
+    core.start_checks.append(nav.refusal)
+    if calibration is not None:
+        # guided insertion places the tracked opener in the base with the same hand-eye
+        core.set_hand_eye(calibration.T_B_C)
+    refusal = nav.refusal()
+    if refusal:
+        _log(f"navigation unavailable on this cell: {refusal}")
+    return capture, nav, cell
 
 
 def keep_off_control_cpu(cpu: int | None) -> None:

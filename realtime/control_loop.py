@@ -13,12 +13,15 @@ do theirs, non-blocking). It runs in one of two ways:
 
 Per period the loop (1) reads the arm and wrist state; (2) trips the latched stop on a stop
 request from the daemon, a disconnected or protective-stopped arm, a silent or faulted
-driver, a stale pose while moving, or repeated deadline misses; (3) when stopped, commands
-nothing at all; otherwise steps the servo setpoint toward the goal with the speed limits
-and sends it, or, when holding, only kicks the arm's watchdog. In GUIDE mode the setpoint
-comes from the admittance inside the virtual fixture (``control/guidance/guided_motion.py``), and
-the rod's collision alarm on the surrogate model, or a TCP outside the fixture at the
-start, trips the stop too. The plan arrives through ``set_guide`` (in the control process,
+driver, a stale fixture frame while guiding, or repeated deadline misses; (3) when
+stopped, commands nothing at all; otherwise steps the servo setpoint toward the goal with
+the speed limits and sends it, or, when holding (asked to, or because the goal was
+computed from poses older than ``stale_pose``), only kicks the arm's watchdog. In GUIDE
+mode the setpoint comes from the admittance inside the virtual fixture
+(``control/guidance/guided_motion.py``), and the rod's collision alarm on the surrogate
+model, or a TCP outside the fixture at the start, trips the stop too. It records each new
+measured TCP in the arm history and each goal's capture-to-command latency, both for the
+daemon. The plan arrives through ``set_guide`` (in the control process,
 from the plan channel, ``realtime/plan_channel.py``), which refuses a new plan while a
 guided motion runs; any latched stop ends the guided motion, so that a reset never
 resumes it. The status record reports the guidance: active or not, the plan messages
@@ -43,7 +46,7 @@ from oralnav.control.errors import ControlError
 from oralnav.control.guidance.guided_motion import GuidedMotion, GuideStep
 from oralnav.drivers.arm import Arm, ArmState
 from oralnav.drivers.effector import EffectorState, EndEffector
-from oralnav.realtime.shm import SharedRecord, decode_reason, encode_reason
+from oralnav.realtime.shm import SharedRecord, SharedRing, decode_reason, encode_reason
 from oralnav.safety.limits import SpeedLimiter, WorkspaceBox
 from oralnav.safety.watchdogs import DeadlineWatchdog, DriverSilenceWatchdog, StalePoseWatchdog
 
@@ -83,11 +86,31 @@ CMD_DTYPE = np.dtype([
     ("recover_device", "S16"),     # "effector" or "arm"
 ])
 
+#: The loop -> daemon arm history: one entry per new measured TCP (the arm's own
+#: timestamp, mapped by its driver onto the daemon's monotonic clock: RTDE's controller
+#: time on the UR), so the daemon can place a camera frame's capture instant on the
+#: arm's trajectory (docs/navigation.md, "Time").
+ARM_SAMPLE_DTYPE = np.dtype([
+    ("t", "f8"),                   # s, when the arm measured this pose
+    ("T_B_tcp", "f8", (4, 4)),     # measured TCP, m
+])
+#: Entries kept: 4 s at 500 Hz, well beyond a frame's capture-to-tracked delay.
+ARM_HISTORY_SLOTS = 2048
+#: The loop -> daemon capture-to-command latency: one entry per goal (MOVE) or fixture
+#: frame (GUIDE), when the first servo command computed from it is sent.
+LATENCY_DTYPE = np.dtype([
+    ("t_capture", "f8"),           # s: the capture instant of the poses behind the goal
+    ("t_command", "f8"),           # s: when the first servo command toward it was sent
+])
+#: Entries kept: the last 512 goals (17 s at 30 frames/s).
+LATENCY_SLOTS = 512
+
 #: The loop -> daemon status.
 STATUS_DTYPE = np.dtype([
     ("t", "f8"),                   # loop clock at the last period (s)
     ("periods", "i8"),
     ("T_B_tcp", "f8", (4, 4)),     # measured TCP, m
+    ("t_arm", "f8"),               # when the arm measured T_B_tcp (s, its timestamp)
     ("tcp_speed", "f8", (6,)),     # m/s, rad/s
     ("setpoint", "f8", (4, 4)),    # last servo setpoint sent, m
     ("arm_connected", "?"),
@@ -101,6 +124,7 @@ STATUS_DTYPE = np.dtype([
     ("stop_count_seen", "i8"),
     ("clear_count_seen", "i8"),
     ("motion_commands", "i8"),
+    ("goal_stale", "?"),           # held this period: the MOVE goal is older than stale_pose
     ("t_last_motion", "f8"),
     ("misses", "i8"),
     ("err_last", "f8"),            # |period - nominal| of the last period (s)
@@ -128,7 +152,8 @@ class LoopSettings:
     ``[safety]`` of the daemon file, docs/safety.md)."""
 
     rate_hz: float = 500.0
-    stale_pose: float = 0.1              # s: a pose older than this stops a move
+    stale_pose: float = 0.1              # s: a MOVE goal older than this is held, a GUIDE
+                                         # frame older than this stops the arm
     driver_silence: float = 0.1          # s: a driver state older than this stops the arm
     deadline_misses: int = 5             # consecutive late periods that stop the arm
     max_period_lateness: float = 0.01    # s: one period this late stops the arm
@@ -162,8 +187,16 @@ class ControlLoop:
 
     def __init__(self, arm: Arm, effector: EndEffector | None, settings: LoopSettings,
                  nav: SharedRecord, cmd: SharedRecord, status: SharedRecord,
-                 limiter: SpeedLimiter, clock: Callable[[], float] | None = None) -> None:
+                 limiter: SpeedLimiter, clock: Callable[[], float] | None = None,
+                 history: SharedRing | None = None,
+                 latency: SharedRing | None = None) -> None:
         self.arm, self.effector, self.s = arm, effector, settings
+        # the measured TCP's history (ARM_SAMPLE_DTYPE), when the daemon reads one
+        self.history = history
+        # capture-to-command latencies (LATENCY_DTYPE), when the daemon reads them
+        self.latency = latency
+        self._t_capture_used = -math.inf  # the capture instant of the last goal servoed
+        self._t_history = -math.inf  # the arm timestamp last appended
         # the real clock, to time each period's work; None (virtual clock): work is instant
         self._clock = clock
         self.nav, self.cmd, self.status = nav, cmd, status
@@ -193,6 +226,7 @@ class ControlLoop:
         self._guide_seq = 0
         self._guide_refused = 0
         self._guide_metrics = (math.nan, math.nan, math.nan)  # rod distance, axial, radial
+        self._goal_stale = False  # this period held on a MOVE goal older than stale_pose
 
     @property
     def guide_running(self) -> bool:
@@ -260,8 +294,10 @@ class ControlLoop:
         if reason is not None and not self._latched:
             self._latch(now, reason)
         self._guide_active = False
+        self._goal_stale = False
         if not self._latched:
             self._command(now, arm, nav)
+        self._record(arm)
         self._publish(now, arm, wrist, err)
         # finished how long after this period's end (its deadline); <= 0 is on time
         self._deadline.period_done(self._clock_after(now) - (now - lateness + s.period), now)
@@ -292,10 +328,10 @@ class ControlLoop:
             return outside
         if int(nav["mode"]) == GUIDE and self._guide is None:
             return "guided motion requested without a plan"
-        if int(nav["mode"]) in (MOVE, GUIDE):  # a stale pose matters only while it steers
+        if int(nav["mode"]) == GUIDE:  # the operator's push follows a stale fixture: stop
             self._stale.fresh("goal", float(nav["t_pose"]))
             trips += self._stale.check(now)
-        else:
+        else:  # MOVE holds on a stale goal instead (_command); HOLD needs no pose
             self._stale.disarm("goal")
         return "; ".join(f"{t.name}: {t.reason}" for t in trips) if trips else None
 
@@ -372,7 +408,11 @@ class ControlLoop:
         else:
             if self._guide is not None:
                 self._guide.finish()    # the next GUIDE period starts from the measured TCP
-            if mode != MOVE:
+            # a MOVE goal computed from poses older than stale_pose is not followed: the
+            # arm holds where it is until a fresh one comes (slow sight, slow motion);
+            # poses that stop coming are the daemon's pose_timeout, a latched stop
+            self._goal_stale = mode == MOVE and now - float(nav["t_pose"]) > s.stale_pose
+            if mode != MOVE or self._goal_stale:
                 self._setpoint = np.array(arm.T_B_tcp, dtype=float)
                 self.arm.kick()
                 return
@@ -380,6 +420,11 @@ class ControlLoop:
         near = np.array(nav["near_point"]) if bool(nav["near_valid"]) else None
         self._setpoint = self.limiter.step(self._setpoint, goal, s.period, near=near)
         self.arm.servo(self._setpoint, s.period)
+        t_capture = float(nav["t_pose"])
+        if self.latency is not None and t_capture != self._t_capture_used:
+            # the first command from this capture: its latency, on the real clock
+            self._t_capture_used = t_capture
+            self.latency.append(t_capture=t_capture, t_command=self._clock_after(now))
         if self.effector is not None and bool(nav["wrist_valid"]):
             q = np.array(self.effector.state().joints, dtype=float)
             step = np.clip(np.array(nav["wrist_goal"]) - q, -s.max_wrist_speed * s.period,
@@ -419,10 +464,19 @@ class ControlLoop:
             return self.start_errors["arm"]
         return getattr(self.arm, "fault", None) or ""
 
+    def _record(self, arm: ArmState) -> None:
+        """Append the arm's measured TCP to the history when it is a new measurement (a
+        UR reports at its own rate; a repeated timestamp is the same sample)."""
+        if self.history is None or not arm.connected or arm.timestamp <= self._t_history:
+            return
+        self._t_history = arm.timestamp
+        self.history.append(t=arm.timestamp, T_B_tcp=arm.T_B_tcp)
+
     def _publish(self, now: float, arm: ArmState, wrist: EffectorState | None,
                  err: float) -> None:
         self.status.write(
-            t=now, periods=self._periods, T_B_tcp=arm.T_B_tcp, tcp_speed=arm.tcp_speed,
+            t=now, periods=self._periods, T_B_tcp=arm.T_B_tcp, t_arm=arm.timestamp,
+            tcp_speed=arm.tcp_speed,
             setpoint=self._setpoint if self._setpoint is not None else arm.T_B_tcp,
             arm_connected=arm.connected, protective_stop=arm.protective_stop,
             emergency_stop=arm.emergency_stop,
@@ -432,6 +486,7 @@ class ControlLoop:
             stop_reason=encode_reason(self._stop_reason),
             stop_count_seen=self._stop_seen, clear_count_seen=self._clear_seen,
             motion_commands=self._motion, t_last_motion=self._t_motion,
+            goal_stale=self._goal_stale,
             misses=self._misses, err_last=err, err_max=self._err_max, hist=self._hist,
             guide_active=self._guide_active, guide_planned=self._guide is not None,
             guide_seq=self._guide_seq, guide_refused_seq=self._guide_refused,

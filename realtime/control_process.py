@@ -34,9 +34,13 @@ from oralnav.drivers.arm import Arm
 from oralnav.drivers.clock import Clock
 from oralnav.drivers.effector import EndEffector
 from oralnav.realtime.control_loop import (
+    ARM_HISTORY_SLOTS,
+    ARM_SAMPLE_DTYPE,
     CMD_DTYPE,
     GUIDE,
     HOLD,
+    LATENCY_DTYPE,
+    LATENCY_SLOTS,
     MOVE,
     NAV_DTYPE,
     STATUS_DTYPE,
@@ -46,7 +50,7 @@ from oralnav.realtime.control_loop import (
     try_realtime,
 )
 from oralnav.realtime.plan_channel import ChannelError, PlanInbox, PlanSender, check_size, encode
-from oralnav.realtime.shm import SharedRecord, encode_reason
+from oralnav.realtime.shm import SharedRecord, SharedRing, encode_reason
 from oralnav.safety.limits import SpeedLimiter
 
 log = logging.getLogger(__name__)
@@ -190,6 +194,8 @@ def _child(spec: ProcessSpec, names: dict[str, str], ready: Any, plans: Any = No
     nav = SharedRecord(NAV_DTYPE, names["nav"])
     cmd = SharedRecord(CMD_DTYPE, names["cmd"])
     status = SharedRecord(STATUS_DTYPE, names["status"])
+    history = SharedRing(ARM_SAMPLE_DTYPE, ARM_HISTORY_SLOTS, names["history"])
+    latency = SharedRing(LATENCY_DTYPE, LATENCY_SLOTS, names["latency"])
     clock = WallClock()
     inbox = None
     if plans is not None:
@@ -203,7 +209,7 @@ def _child(spec: ProcessSpec, names: dict[str, str], ready: Any, plans: Any = No
             if d is not None:
                 _start_or_retry(d, kind, start_errors)
         loop = ControlLoop(arm, eff, spec.settings, nav, cmd, status, spec.limiter,
-                           clock=clock.now)
+                           clock=clock.now, history=history, latency=latency)
         loop.start_errors = start_errors
         sims = [d for d in (arm, eff) if d is not None and hasattr(d, "advance")]
         last = [clock.now()]
@@ -238,7 +244,7 @@ def _child(spec: ProcessSpec, names: dict[str, str], ready: Any, plans: Any = No
                 anyio.run(d.close)
             except Exception:
                 log.exception("closing %r", d)
-        for r in (nav, cmd, status):
+        for r in (nav, cmd, status, history, latency):
             r.close()
         if inbox is not None:
             inbox.close()
@@ -253,6 +259,8 @@ class ControlPort:
         self.nav: SharedRecord | None = None
         self.cmd: SharedRecord | None = None
         self.status: SharedRecord | None = None
+        self.history: SharedRing | None = None
+        self.latency: SharedRing | None = None
         self._stops = 0
         self._clears = 0
         self._recovers = 0
@@ -264,9 +272,11 @@ class ControlPort:
         self.nav = SharedRecord(NAV_DTYPE)
         self.cmd = SharedRecord(CMD_DTYPE)
         self.status = SharedRecord(STATUS_DTYPE)
+        self.history = SharedRing(ARM_SAMPLE_DTYPE, ARM_HISTORY_SLOTS)
+        self.latency = SharedRing(LATENCY_DTYPE, LATENCY_SLOTS)
 
     def _close_records(self) -> None:
-        for name in ("nav", "cmd", "status"):
+        for name in ("nav", "cmd", "status", "history", "latency"):
             rec = getattr(self, name)
             if rec is not None:
                 rec.close()
@@ -377,6 +387,21 @@ class ControlPort:
     def read_status(self) -> np.void | None:
         return None if self.status is None else self.status.read()
 
+    def read_arm_history(self) -> np.ndarray:
+        """The arm's measured TCP history, oldest first (``ARM_SAMPLE_DTYPE``: ``t`` in s
+        on the arm's timestamps, ``T_B_tcp`` 4x4 m); empty before the loop's first
+        sample. A copy, about 20 us for the full ring; never waits on the loop."""
+        if self.history is None:
+            return np.zeros(0, dtype=ARM_SAMPLE_DTYPE)
+        return self.history.read()
+
+    def read_latency(self) -> np.ndarray:
+        """The last capture-to-command latencies, oldest first (``LATENCY_DTYPE``:
+        ``t_capture`` and ``t_command`` in s); empty before the first goal is servoed."""
+        if self.latency is None:
+            return np.zeros(0, dtype=LATENCY_DTYPE)
+        return self.latency.read()
+
     def heartbeat(self) -> int:
         """The loop's heartbeat: a number that changes with every period it completes (the
         status record's write count; the loop alone writes that record, once per period).
@@ -394,12 +419,16 @@ class ControlProcess(ControlPort):
         self._proc: mp.process.BaseProcess | None = None
         self._plans: PlanSender | None = None
 
-    async def start(self, timeout: float = 20.0) -> None:
-        """Create the records, spawn the child, and wait until its loop runs."""
+    async def start(self, timeout: float = 90.0) -> None:
+        """Create the records, spawn the child, and wait until its loop runs. The child
+        imports numpy, scipy and numba and warms guided motion up before its first period:
+        2-5 s on an idle machine, and over 20 s was seen with both cores of a 2-core
+        machine busy, so the default waits generously; a child that dies says so at once."""
         self._open_records()
         ctx = mp.get_context("spawn")  # no inherited threads or locks from the daemon
         ready = ctx.Event()
-        names = {"nav": self.nav.name, "cmd": self.cmd.name, "status": self.status.name}
+        names = {"nav": self.nav.name, "cmd": self.cmd.name, "status": self.status.name,
+                 "history": self.history.name, "latency": self.latency.name}
         reader, writer = ctx.Pipe(duplex=False)
         self._plans = PlanSender(os.dup(writer.fileno()))
         writer.close()
@@ -469,7 +498,7 @@ class InProcessControl(ControlPort):
         self._open_records()
         self.arm, self.effector = arm, effector
         self.loop = ControlLoop(arm, effector, settings, self.nav, self.cmd, self.status,
-                                limiter)
+                                limiter, history=self.history, latency=self.latency)
         self._last: float | None = None
         self._closed = False
 

@@ -114,6 +114,96 @@ class SharedRecord:
                 pass
 
 
+class SharedRing:
+    """The last ``slots`` entries of ``dtype`` appended by one writer, in shared memory:
+    the arm's measured TCP history, which the daemon reads to place each camera frame's
+    capture instant on the arm's trajectory.
+
+    Layout: a uint64 count of completed appends, then ``slots`` entries, each a uint64
+    sequence before its record. Append ``k`` (0-based) goes to slot ``k % slots``: the
+    slot's sequence is set to ``2k + 1`` (odd: being written), the record copied, the
+    sequence set to ``2k + 2``, then the count to ``k + 1``. A reader copies every slot
+    and keeps those whose sequence was ``2k + 2`` both before and after its copy, for the
+    ``k`` it expects there: so a torn or overwritten slot is left out, never returned.
+    Appends write one slot, never the whole ring, and neither side waits on the other.
+
+    Create it on one side (``SharedRing(dtype, slots)``) and attach on the other with
+    ``name=``; the creator unlinks the block in ``close()``.
+    """
+
+    def __init__(self, dtype: np.dtype, slots: int, name: str | None = None) -> None:
+        if isinstance(slots, bool) or not isinstance(slots, int) or slots < 2:
+            raise ShmError(f"a shared ring needs slots >= 2 (an integer), got {slots!r}")
+        self.dtype = np.dtype(dtype)
+        self.slots = slots
+        self._entry = np.dtype([("seq", "u8"), ("rec", self.dtype)])
+        self._owner = name is None
+        size = 8 + slots * self._entry.itemsize
+        try:
+            self._shm = shared_memory.SharedMemory(name=name, create=self._owner, size=size)
+        except (FileNotFoundError, OSError, ValueError) as exc:
+            raise ShmError(f"shared ring {name or '(new)'}: {exc}") from exc
+        buf = self._shm.buf
+        self._count = np.ndarray((1,), dtype=np.uint64, buffer=buf, offset=0)
+        self._ring = np.ndarray((slots,), dtype=self._entry, buffer=buf, offset=8)
+        self._lock = threading.Lock()
+        if self._owner:
+            self._count[0] = 0
+            self._ring["seq"] = 0
+
+    @property
+    def name(self) -> str:
+        return self._shm.name
+
+    @property
+    def count(self) -> int:
+        """Appends completed so far."""
+        return int(self._count[0])
+
+    def append(self, **values: Any) -> None:
+        """Add one entry (fields not given are zero); the oldest drops out. Never waits on
+        a reader."""
+        with self._lock:
+            k = int(self._count[0])
+            slot = self._ring[k % self.slots]
+            rec = np.zeros((), dtype=self.dtype)
+            for key, value in values.items():
+                rec[key] = value
+            self._ring["seq"][k % self.slots] = np.uint64(2 * k + 1)
+            slot["rec"] = rec
+            self._ring["seq"][k % self.slots] = np.uint64(2 * k + 2)
+            self._count[0] = np.uint64(k + 1)
+
+    def read(self) -> np.ndarray:
+        """The entries still in the ring, oldest first, as a structured array of
+        ``dtype`` (a copy); slots being overwritten during the copy are left out."""
+        count = int(self._count[0])
+        n = min(count, self.slots)
+        if n == 0:
+            return np.zeros(0, dtype=self.dtype)
+        ks = np.arange(count - n, count, dtype=np.int64)
+        idx = ks % self.slots
+        before = self._ring["seq"][idx].copy()
+        recs = self._ring["rec"][idx].copy()
+        after = self._ring["seq"][idx]
+        want = (2 * ks + 2).astype(np.uint64)
+        ok = (before == want) & (after == want)
+        return recs[ok]
+
+    def close(self) -> None:
+        """Release the mapping (and the block, on the creating side). Idempotent."""
+        shm, self._shm = getattr(self, "_shm", None), None
+        if shm is None:
+            return
+        del self._count, self._ring
+        shm.close()
+        if self._owner:
+            try:
+                shm.unlink()
+            except FileNotFoundError:
+                pass
+
+
 def encode_reason(text: str) -> bytes:
     """``text`` as at most :data:`REASON_BYTES` bytes of UTF-8, cut at a character."""
     raw = text.encode("utf-8")[:REASON_BYTES]

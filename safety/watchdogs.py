@@ -329,6 +329,7 @@ class WatchdogSettings(Protocol):
     configuration, ``oralnav.config.daemon.SafetySection``)."""
 
     stale_pose: float
+    pose_timeout: float
     camera_stall: float
     driver_silence: float
     deadline_misses: int
@@ -342,8 +343,11 @@ class WatchdogSet:
 
     def __init__(self, *, poses: StalePoseWatchdog, cameras: CameraStallWatchdog,
                  drivers: DriverSilenceWatchdog, deadline: DeadlineWatchdog,
-                 covariance: CovarianceWatchdog) -> None:
+                 covariance: CovarianceWatchdog, stale_pose: float | None = None) -> None:
         self.poses = poses
+        #: s: the age up to which a pose may still steer (``[safety] stale_pose``; the
+        #: pose watch itself trips at the longer ``pose_timeout``)
+        self.stale_pose = poses.limit if stale_pose is None else float(stale_pose)
         self.cameras = cameras
         self.drivers = drivers
         self.deadline = deadline
@@ -353,13 +357,16 @@ class WatchdogSet:
     def from_settings(cls, settings: WatchdogSettings, period: float) -> WatchdogSet:
         """Build from the ``[safety]`` settings and the control period (s, 1 / rate_hz)."""
         s = settings
-        return cls(poses=StalePoseWatchdog(s.stale_pose),
+        # the daemon's watch is for poses that stop coming (pose_timeout); the loop holds
+        # on a goal older than stale_pose by itself
+        return cls(poses=StalePoseWatchdog(s.pose_timeout),
                    cameras=CameraStallWatchdog(s.camera_stall),
                    drivers=DriverSilenceWatchdog(s.driver_silence),
                    deadline=DeadlineWatchdog(period, s.deadline_misses,
                                              s.max_period_lateness),
                    covariance=CovarianceWatchdog(s.max_position_sigma,
-                                                 s.max_rotation_sigma_deg))
+                                                 s.max_rotation_sigma_deg),
+                   stale_pose=s.stale_pose)
 
     def __iter__(self) -> Iterator[Watchdog]:
         return iter((self.poses, self.cameras, self.drivers, self.deadline, self.covariance))

@@ -106,9 +106,9 @@ async def test_procedure_needs_targets_then_moves_only_while_running(rig) -> Non
 
 
 async def test_loop_latch_stale_pose_and_estop_input_become_faults(rig) -> None:
-    """A stop the loop latched itself becomes FAULT with its reason; a stale pose that the
-    current stage steers by trips FAULT; a pressed e-stop input is ESTOP and blocks reset
-    until released."""
+    """A stop the loop latched itself becomes FAULT with its reason; a pose that the
+    current stage steers by and that stops coming (pose_timeout) trips FAULT; a pressed
+    e-stop input is ESTOP and blocks reset until released."""
     core, client, clear, inputs, _ = rig
     core.control.request_stop("arm protective stop (simulated)")
     await _until(lambda: bool(core.control.read_status()["latched"]))
@@ -123,7 +123,8 @@ async def test_loop_latch_stale_pose_and_estop_input_become_faults(rig) -> None:
     core.publish_pose("opener", _home(), now, frame="C")
     core.supervise_once(now + 0.05)
     assert core.supervisor.state.value in ("IDLE", "READY")
-    core.supervise_once(now + 5.0)  # past any configured stale_pose (sim.toml: 1 s)
+    # past the pose timeout (sim.toml: 5 s): the pose stopped coming
+    core.supervise_once(now + core.watchdogs.poses.limit + 0.1)
     assert core.supervisor.state.value == "FAULT"
     assert "opener" in json.dumps(core.status()["safety"])
 

@@ -6,84 +6,13 @@ deterministically and faster than real time; every target is reached with a TRE 
 
 from __future__ import annotations
 
-import functools
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from oralnav.config.daemon import load_config
-from oralnav.daemon.core import DaemonCore
-from oralnav.daemon.navigation_task import ArmProbe, NavigationTask
-from oralnav.daemon.schemas import SutureTarget
-from oralnav.drivers.arm.sim import SimArm
-from oralnav.drivers.camera.sim import SimCameraSet
-from oralnav.drivers.clock import VirtualClock
-from oralnav.drivers.effector.sim import SimEffector
-from oralnav.drivers.io.sim import SimInputs
-from oralnav.realtime.control_loop import LoopSettings
-from oralnav.realtime.control_process import InProcessControl
-from oralnav.safety.limits import SpeedLimiter
-from oralnav.safety.watchdogs import WatchdogSet
-from oralnav.sim.world.cell import SimCell
+from tests.daemon.lockstep import CAMERA_EVERY, Lockstep, start_procedure
 from tests.daemon.rigid_poses import assert_rigid, observer_client, poll_rigidity
-
-CAMERA_EVERY = 50        # loop periods per camera frame: 10 Hz at 500 Hz
-SUPERVISE_EVERY = 10     # 50 Hz
-
-
-@functools.cache
-def _config():
-    # one frozen configuration for the module: its camera models are the same objects in
-    # every test, so the renderer's ray maps (cached per camera) are built once, not per test
-    return load_config()
-
-
-class Lockstep:
-    def __init__(self) -> None:
-        cfg = _config()
-        s = cfg.settings
-        self.cfg = cfg
-        self.clock = VirtualClock(100.0)
-        self.arm = SimArm(clock=self.clock, home=cfg.cell.home_T_B_tcp)
-        self.wrist = SimEffector(clock=self.clock)
-        # config/sim.toml's limits, as oralnavd --demo uses them
-        settings = LoopSettings.from_config(s.control, s.safety)
-        self.period = settings.period
-        self.control = InProcessControl(self.arm, self.wrist, settings,
-                                        SpeedLimiter.from_settings(s.safety))
-        self.inputs = SimInputs(clock=self.clock)
-        self.core = DaemonCore(self.control, WatchdogSet.from_settings(s.safety, self.period),
-                               inputs=self.inputs, clock=self.clock.now)
-        self.probe = ArmProbe(self.core, cfg.cell.home_T_B_tcp)
-        self.cell = SimCell(cfg.cell, self.probe, self.probe.wrist, self.clock.now)
-        self.cameras = SimCameraSet(self.cell.camera_names, self.cell)
-        self.nav = NavigationTask(self.core, self.cell, self.cameras, self.probe)
-        self.k = 0
-
-    async def start(self) -> None:
-        import anyio
-        await anyio.to_thread.run_sync(self.cell.prepare)
-        for dev in (self.arm, self.wrist, self.inputs, self.cameras):
-            await dev.start()
-
-    async def close(self) -> None:
-        for dev in (self.cameras, self.inputs, self.wrist, self.arm):
-            await dev.close()
-        await self.control.close()
-
-    async def run(self, periods: int, until=lambda: False, frozen=lambda: False,
-                  lateness: float = 0.0) -> None:
-        for _ in range(periods):
-            self.clock.advance(self.period)
-            self.control.step(self.clock.now(), lateness)
-            self.k += 1
-            if self.k % CAMERA_EVERY == 0 and not frozen():
-                await self.nav._round(await self.cameras.read())
-            if self.k % SUPERVISE_EVERY == 0:
-                self.core.supervise_once(self.clock.now())
-            if until():
-                return
 
 
 @pytest.fixture
@@ -96,21 +25,12 @@ async def cell():
         await c.close()
 
 
-async def _start(c: Lockstep) -> None:
-    await c.run(SUPERVISE_EVERY)  # the loop's first periods report the arm's state
-    c.core.set_targets([SutureTarget(name=n, p_OM=tuple(float(x) for x in p))
-                        for n, p in c.cfg.cell.targets_OM.items()], "test")
-    c.core.supervise_once(c.clock.now())
-    assert c.core.supervisor.state.value == "READY"
-    c.core.procedure("start", "test")
-
-
 async def test_whole_procedure_on_the_virtual_clock(cell: Lockstep, tmp_path: Path) -> None:
     """Approach, intra-oral adjustment and all four targets, with no fault, TRE < 0.1 mm
     against ground truth, the TCP never faster than the configured speed limit. And
     issue 30: every published pose is rigid to 1e-9: GET /poses after every camera round
     of the moving robot gives only rigid T (every field, the endoscope's view, the TCP)."""
-    await _start(cell)
+    await start_procedure(cell)
     speeds = []
 
     def done() -> bool:
@@ -136,10 +56,10 @@ async def test_whole_procedure_on_the_virtual_clock(cell: Lockstep, tmp_path: Pa
 
 
 async def test_frozen_camera_stops_the_robot(cell: Lockstep) -> None:
-    """A camera that stops delivering during the move trips the stale-pose or the
+    """A camera that stops delivering during the move trips the pose-timeout or the
     camera-stall watchdog (whichever limit is shorter): FAULT, the loop latches within two
     periods of the detection, and the arm gets no motion command afterwards."""
-    await _start(cell)
+    await start_procedure(cell)
     await cell.run(300)  # 0.6 s: moving
     assert cell.core.supervisor.state.value == "RUNNING"
     t_freeze = cell.clock.now()
@@ -148,7 +68,7 @@ async def test_frozen_camera_stops_the_robot(cell: Lockstep) -> None:
     assert cell.core.supervisor.state.value == "FAULT"
     t_fault = cell.clock.now()
     safety = cell.cfg.settings.safety
-    limit = min(safety.camera_stall, safety.stale_pose)
+    limit = min(safety.camera_stall, safety.pose_timeout)
     assert limit - CAMERA_EVERY * cell.period <= t_fault - t_freeze <= limit + 0.05
     why = str(cell.core.supervisor.snapshot())
     assert "stale_pose" in why or "camera_stall" in why
@@ -161,14 +81,15 @@ async def test_frozen_camera_stops_the_robot(cell: Lockstep) -> None:
 
 
 def _lose_opener(c: Lockstep) -> None:
-    track = c.nav.stereo.track
+    stereo = c.source.views[0].tracker
+    track = stereo.track
 
     def without_opener(images):
         out = track(images)
         out.pop(c.cfg.cell.opener, None)
         return out
 
-    c.nav.stereo.track = without_opener
+    stereo.track = without_opener
 
 
 @pytest.mark.parametrize("fault, expect", [
@@ -182,7 +103,7 @@ async def test_injected_faults_stop_the_robot(cell: Lockstep, fault, expect: str
     """Each injected fault during the move (arm link lost, protective stop, silent wrist,
     lost opener field, late control loop) ends in FAULT with its reason; the loop has
     stopped the arm and sends no motion command after the stop."""
-    await _start(cell)
+    await start_procedure(cell)
     await cell.run(300)
     assert cell.core.supervisor.state.value == "RUNNING"
     moves_before = len([r for r in cell.arm.command_log if r.kind == "servo"])

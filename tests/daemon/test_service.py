@@ -163,7 +163,7 @@ def test_main_job_visits_every_target(tmp_path: Path) -> None:
     assert demo["done"] is True
     assert set(demo["tre_mm"]) == {"stitch_1", "stitch_2", "stitch_3", "stitch_4"}
     assert max(demo["tre_mm"].values()) < 0.2
-    assert demo["rates_hz"]["tracking"] > 1.0
+    assert demo["rates_hz"]["tracking cell"] > 1.0
 
 
 def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:

@@ -1,5 +1,5 @@
 """Issue 4, control loop: it servoes toward the goal within the speed limits, and every
-fault it watches (stop request, stale pose, arm disconnect, protective stop, silent or
+fault it watches (stop request, arm disconnect, protective stop, silent or
 faulted end-effector, late periods) stops the arm within two control periods of detection,
 with no motion command after the stop. On the virtual clock, in-process."""
 
@@ -16,7 +16,9 @@ from oralnav.drivers.arm.sim import SimArm
 from oralnav.drivers.clock import VirtualClock
 from oralnav.drivers.effector.sim import SimEffector
 from oralnav.realtime.control_loop import (
+    ARM_SAMPLE_DTYPE,
     CMD_DTYPE,
+    LATENCY_DTYPE,
     MOVE,
     NAV_DTYPE,
     STATUS_DTYPE,
@@ -24,7 +26,7 @@ from oralnav.realtime.control_loop import (
     LoopSettings,
 )
 from oralnav.realtime.control_process import ControlProcess, DriverSpec, ProcessSpec
-from oralnav.realtime.shm import SharedRecord, encode_reason
+from oralnav.realtime.shm import SharedRecord, SharedRing, encode_reason
 from oralnav.safety.limits import SpeedLimiter
 from tests.helpers import LOADED_MACHINE
 
@@ -120,17 +122,29 @@ def test_stop_request_stops_at_the_next_period(cell: Cell) -> None:
     _assert_stopped(cell, t, "operator e-stop")
 
 
-def test_stale_pose_stops_a_move_but_not_a_hold(cell: Cell) -> None:
-    """No fresh pose for stale_pose while moving stops the arm; holding still does not
-    need one."""
+def test_a_stale_goal_is_held_not_followed(cell: Cell) -> None:
+    """Issue 32 (slow sight slows the robot): a MOVE goal computed from poses older than
+    stale_pose is not followed: the arm holds where it is (no motion command, the status
+    says goal_stale), without latching; a fresh goal moves it again. Holding needs no
+    pose at all. (A stale fixture frame in GUIDE still stops the arm: test_guided_loop.)"""
     cell.nav.write(goal=_pose(), t_pose=cell.clock.now(), mode=0)
     cell.fresh_pose = False
     cell.run(100)  # 0.2 s holding with an old pose
     assert not cell.status.read()["latched"]
     cell.goal(0.05)
     t_pose = cell.clock.now()
-    cell.run(100)
-    _assert_stopped(cell, t_pose + SETTINGS.stale_pose, "stale")
+    cell.run(100)  # 0.2 s: stale after 0.1 s
+    st = cell.status.read()
+    assert not st["latched"] and st["goal_stale"]
+    held_from = t_pose + SETTINGS.stale_pose + P
+    assert cell.motion_after(held_from) == []
+    x_held = cell.arm.state().T_B_tcp[0, 3]
+    assert 0.0 < x_held < 0.05
+    cell.fresh_pose = True
+    cell.run(600)
+    st = cell.status.read()
+    assert not st["latched"] and not st["goal_stale"]
+    assert abs(cell.arm.state().T_B_tcp[0, 3] - 0.05) < 1e-6
 
 
 @pytest.mark.parametrize("fault, reason", [
@@ -314,3 +328,57 @@ def test_device_recovery_runs_only_while_latched(cell: Cell) -> None:
     cell.cmd.write(recover_count=3, recover_device=b"arm")
     cell.run(1)
     assert done.wait(2.0) and calls == ["effector", "arm"]
+
+
+def test_records_each_new_arm_measurement_in_the_history() -> None:
+    """Issue 32 (time): every period with a new arm measurement appends (its timestamp,
+    the measured TCP) to the history ring, and the status says when the arm measured its
+    TCP (``t_arm``); a repeated timestamp (an arm reporting slower than the loop) and a
+    disconnected arm append nothing."""
+    c = Cell()
+    ring = SharedRing(ARM_SAMPLE_DTYPE, 64)
+    try:
+        c.loop = ControlLoop(c.arm, c.wrist, SETTINGS, c.nav, c.cmd, c.status,
+                             SpeedLimiter(0.25, 0.5), history=ring)
+        c.goal(0.01)
+        c.run(10)
+        got = ring.read()
+        assert len(got) == 10 and np.all(np.diff(got["t"]) > 0)
+        assert got["t"][-1] == c.arm.state().timestamp == c.status.read()["t_arm"]
+        np.testing.assert_array_equal(got["T_B_tcp"][-1], c.arm.state().T_B_tcp)
+        c.loop.step(c.clock.now())  # the same measurement again
+        assert ring.count == 10
+        c.arm.inject_disconnect()
+        c.run(3)
+        assert ring.count == 10
+    finally:
+        ring.close()
+        c.close()
+
+
+def test_records_capture_to_command_latency_once_per_goal() -> None:
+    """Issue 32, item 5: the first servo command computed from a goal records (capture
+    instant of its poses, when that command was sent); later commands toward the same
+    goal add nothing, a goal from a new capture adds one; a held goal adds nothing."""
+    c = Cell()
+    ring = SharedRing(LATENCY_DTYPE, 16)
+    try:
+        c.loop = ControlLoop(c.arm, c.wrist, SETTINGS, c.nav, c.cmd, c.status,
+                             SpeedLimiter(0.25, 0.5), latency=ring)
+        c.fresh_pose = False
+        t_capture = c.clock.now() - 0.03
+        c.nav.write(goal=_pose(0.01), t_pose=t_capture, mode=MOVE)
+        c.run(10)
+        got = ring.read()
+        assert len(got) == 1 and got["t_capture"][0] == t_capture
+        assert got["t_command"][0] - t_capture == pytest.approx(0.03 + P)
+        c.nav.write(goal=_pose(0.0), t_pose=c.clock.now(), mode=0)  # HOLD
+        c.run(5)
+        c.nav.write(goal=_pose(0.02), t_pose=c.clock.now() - 0.005, mode=MOVE)
+        c.run(5)
+        got = ring.read()
+        assert len(got) == 2
+        assert got["t_command"][1] - got["t_capture"][1] == pytest.approx(0.005 + P)
+    finally:
+        ring.close()
+        c.close()

@@ -11,7 +11,13 @@ import time
 import numpy as np
 import pytest
 
-from oralnav.realtime.shm import SharedRecord, ShmError, decode_reason, encode_reason
+from oralnav.realtime.shm import (
+    SharedRecord,
+    SharedRing,
+    ShmError,
+    decode_reason,
+    encode_reason,
+)
 
 PAIR = np.dtype([("a", "f8"), ("b", "f8"), ("big", "f8", (64,)), ("n", "i8")])
 
@@ -118,3 +124,71 @@ def test_a_write_that_does_not_convert_changes_nothing(rec: SharedRecord) -> Non
     rec.write(n=2)
     got = rec.read()
     assert (got["a"], got["n"]) == (1.0, 2)
+
+
+# -- the arm history ring (issue 32: navigation places each frame on the arm's trajectory) --
+
+SAMPLE = np.dtype([("t", "f8"), ("x", "f8", (3,))])
+
+
+def test_ring_keeps_the_newest_entries_oldest_first_on_both_sides() -> None:
+    """Issue 32: the ring holds the last ``slots`` appends, oldest first, and a side that
+    attached by name reads the same; fields not given are zero."""
+    ring = SharedRing(SAMPLE, 4)
+    other = SharedRing(SAMPLE, 4, name=ring.name)
+    try:
+        assert len(ring.read()) == 0
+        for k in range(6):
+            ring.append(t=float(k), x=[k, 2 * k, 3 * k])
+        got = other.read()
+        assert got["t"].tolist() == [2.0, 3.0, 4.0, 5.0]
+        assert got["x"][-1].tolist() == [5.0, 10.0, 15.0]
+        ring.append(t=6.0)
+        assert other.read()["x"][-1].tolist() == [0.0, 0.0, 0.0]
+        assert ring.count == other.count == 7
+    finally:
+        other.close()
+        ring.close()
+
+
+def test_ring_leaves_out_a_slot_being_written() -> None:
+    """Issue 32: a slot whose writer is mid-copy (its sequence odd, or of another append)
+    is left out of a read, never returned torn."""
+    ring = SharedRing(SAMPLE, 4)
+    try:
+        for k in range(4):
+            ring.append(t=float(k))
+        ring._ring["seq"][1] += 1  # as if the writer had begun overwriting slot 1
+        assert ring.read()["t"].tolist() == [0.0, 2.0, 3.0]
+    finally:
+        ring.close()
+
+
+def test_ring_refuses_a_useless_size() -> None:
+    """Issue 32 (bad input): fewer than two slots is a named error."""
+    with pytest.raises(ShmError, match="slots >= 2"):
+        SharedRing(SAMPLE, 1)
+
+
+def test_ring_reads_whole_entries_while_a_writer_appends() -> None:
+    """Issue 32: reads racing a writer thread return only whole, increasing entries."""
+    ring = SharedRing(SAMPLE, 64)
+    stop = threading.Event()
+
+    def writer() -> None:
+        k = 0
+        while not stop.is_set():
+            ring.append(t=float(k), x=[k, k, k])
+            k += 1
+
+    th = threading.Thread(target=writer)
+    th.start()
+    try:
+        for _ in range(2000):
+            got = ring.read()
+            assert np.all(np.diff(got["t"]) > 0)
+            assert np.all(got["x"] == got["t"][:, None])
+    finally:
+        stop.set()
+        th.join()
+        ring.close()

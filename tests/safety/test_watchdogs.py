@@ -223,7 +223,8 @@ def test_watchdog_set_from_settings_checks_all():
     period, check(now) gathers the trips of every watchdog; next_deadline is the earliest."""
     s = SafetySection()
     ws = WatchdogSet.from_settings(s, period=1 / 500)
-    assert ws.poses.limit == s.stale_pose and ws.cameras.limit == s.camera_stall
+    assert ws.poses.limit == s.pose_timeout and ws.cameras.limit == s.camera_stall
+    assert ws.stale_pose == s.stale_pose
     assert ws.deadline.misses == s.deadline_misses
     assert ws.next_deadline() is None
     ws.poses.fresh("opener", 0.0)
