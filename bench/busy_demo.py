@@ -71,6 +71,7 @@ def demo_command(port: int) -> list[str]:
 def run_once(folder: Path, command: Sequence[str], timeout: float = RUN_TIMEOUT_S
              ) -> dict[str, Any]:
     """One demo run in ``folder``; its record (see the module docstring)."""
+    folder = folder.resolve()  # the demo runs in it: relative paths would nest
     folder.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, STATE_DIRECTORY=str(folder), RUNTIME_DIRECTORY=str(folder))
     t0 = time.monotonic()

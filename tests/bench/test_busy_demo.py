@@ -34,6 +34,17 @@ def test_runs_are_recorded_and_summarised(tmp_path: Path) -> None:
     assert left.stdout.strip() == ""
 
 
+def test_a_relative_folder_is_taken_from_here(tmp_path: Path, monkeypatch) -> None:
+    """The runs' folders are absolute (the demo runs inside its folder: a relative state
+    folder would nest): a stand-in that writes into $STATE_DIRECTORY writes under out."""
+    monkeypatch.chdir(tmp_path)
+    writer = [sys.executable, "-c", "import json, os, pathlib; p = pathlib.Path("
+              "os.environ['STATE_DIRECTORY']) / 'x'; p.write_text('1'); "
+              "print(json.dumps({'demo': {'done': True}}))"]
+    doc = busy_demo.main(Path("rel"), runs=1, busy=0, command=writer)
+    assert doc["passed"] == 1 and (tmp_path / "rel" / "run_0" / "x").exists()
+
+
 def test_a_failed_run_says_why(tmp_path: Path) -> None:
     """A demo that ends NOT done (exit 1) is a failure with the demo's own reason; one
     that prints nothing is a failure naming its last stderr line."""
