@@ -27,7 +27,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["BUSY_LOOP", "main", "summary"]
+__all__ = ["BUSY_LOOP", "demo_command", "main", "run_once", "summary"]
 
 #: One busy process: integer work that never sleeps, for at most an hour.
 BUSY_LOOP = ("import time\nend = time.monotonic() + 3600\nx = 0\n"
@@ -87,7 +87,8 @@ def run_once(folder: Path, command: Sequence[str], timeout: float = RUN_TIMEOUT_
     (folder / "stderr.txt").write_text(done.stderr)
     rec: dict[str, Any] = {"rc": done.returncode, "wall_s": time.monotonic() - t0}
     try:
-        demo = json.loads(done.stdout.strip().splitlines()[-1])["demo"]
+        doc = json.loads(done.stdout.strip().splitlines()[-1])
+        demo = doc["demo"]
     except (IndexError, KeyError, ValueError):
         tail = done.stderr.strip().splitlines()[-1:] or ["(no output)"]
         rec.update(passed=False, why=f"no JSON result on stdout: {tail[0]}")
@@ -97,7 +98,8 @@ def run_once(folder: Path, command: Sequence[str], timeout: float = RUN_TIMEOUT_
                tre_mm=tre, tre_max_mm=max(tre.values()) if tre else None,
                rates_hz={k: v for k, v in (demo.get("rates_hz") or {}).items()
                          if k.startswith("tracking")},
-               state=demo.get("state"))
+               state=demo.get("state"), latency_ms=doc.get("latency_ms"),
+               tracking_hz=doc.get("tracking_hz"))
     rec["passed"] = done.returncode == 0 and rec["done"]
     if not rec["passed"]:
         rec["why"] = demo.get("error") or str(demo.get("reasons")) or f"exit {done.returncode}"

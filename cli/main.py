@@ -16,6 +16,7 @@
                          --out DIR [--json]
     oralnav bench faults [--quick] --out DIR [--json]
     oralnav bench busy-demo --out DIR [--runs N] [--busy N] [--json]
+    oralnav bench hil --out DIR [--runs N] [--camera-latency S] [--camera-clock-offset S]
 
 Every ``--json`` prints exactly one JSON object on stdout; progress and logs go to stderr.
 Exit status: 0 done, 2 bad input (the message names the file and key), 1 anything else.
@@ -129,7 +130,9 @@ def cmd_sim_peers(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGTERM, leave)
     _progress("starting the peers: fake UR controller, Modbus drive unit, serial e-stop "
-              "box" + ("" if args.no_cameras else ", simulated GigE cameras") + "...")
+              "box" + {"none": "", "pattern": ", simulated GigE cameras (test pattern)",
+                       "rendered": ", the simulated cell's cameras (rendering their "
+                                   "maps takes a few seconds)"}[args.cameras] + "...")
     try:
         _run_peers(args)
     except KeyboardInterrupt:  # a signal while starting or stopping: cleaned up already
@@ -143,10 +146,19 @@ def _run_peers(args: argparse.Namespace) -> None:
 
     from oralnav.cli.peers import HardwarePeers
 
-    with HardwarePeers(args.out, cameras=not args.no_cameras) as peers:
+    if args.frame_rate is not None and not 0.1 <= args.frame_rate <= 1000:
+        raise UsageError(f"--frame-rate must be 0.1..1000 Hz, got {args.frame_rate}")
+    if not 0.0 <= args.camera_latency <= 1.0:
+        raise UsageError(f"--camera-latency must be 0..1 s, got {args.camera_latency}")
+    with HardwarePeers(args.out, cameras=args.cameras, frame_rate=args.frame_rate,
+                       camera_latency=args.camera_latency,
+                       camera_clock_offset=args.camera_clock_offset) as peers:
         path = peers.write_config()
+        cams = (peers.rendered.addresses if peers.rendered is not None
+                else dict(zip(("left", "right"), peers.camera_addresses, strict=False)))
         doc = {"config": str(path), "ur_host": peers.ur.host, "modbus_port": peers.drive.port,
-               "estop": str(peers.box.link), "cameras": peers.camera_addresses}
+               "estop": str(peers.box.link), "cameras": cams,
+               "truth": peers.truth.url if peers.truth is not None else None}
         _emit(args, doc, f"peers running; configuration {path}\n"
                          f"  run: oralnavd --config {path}\n{_PEER_KEYS}")
         sys.stdout.flush()
@@ -414,6 +426,32 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_hil(args: argparse.Namespace) -> int:
+    """``oralnav bench hil``: exit 0 when every run passed, 1 otherwise."""
+    from oralnav.bench import hil
+
+    if args.runs < 1:
+        raise UsageError(f"--runs must be at least 1, got {args.runs}")
+    if not 0.0 <= args.camera_latency <= 1.0:
+        raise UsageError(f"--camera-latency must be 0..1 s, got {args.camera_latency}")
+    from functools import partial
+
+    from oralnav.cli.peers import HardwarePeers
+
+    doc = hil.main(Path(args.out), partial(HardwarePeers, cameras="rendered"),
+                   runs=args.runs, camera_latency=args.camera_latency,
+                   camera_clock_offset=args.camera_clock_offset)
+    s = {k: v for k, v in doc.items() if k != "results"}
+    if args.json:
+        print(json.dumps(s))
+    else:
+        print(f"main job on the hardware-in-the-loop cell: {doc['passed']}/{doc['runs']} "
+              f"passed; TRE max {s['tre_max_mm']} mm over {s['tre_measured']} targets; "
+              f"latency p99 {s['latency_p99_ms']} ms; slowest tracking "
+              f"{s['tracking_hz_min']} frames/s")
+    return 0 if doc["passed"] == doc["runs"] else 1
+
+
 def cmd_bench_busy_demo(args: argparse.Namespace) -> int:
     """``oralnav bench busy-demo``: exit 0 when every run passed, 1 otherwise."""
     from oralnav.bench import busy_demo
@@ -427,10 +465,14 @@ def cmd_bench_busy_demo(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(s))
     else:
+        def fmt(v: float | None, digits: int) -> str:
+            return "-" if v is None else f"{v:.{digits}f}"
+
         print(f"main job on a busy machine ({doc['busy']} busy processes, {doc['cpus']} "
               f"CPUs): {doc['passed']}/{doc['runs']} passed; duration median "
-              f"{s['duration_s']['median']} s, max {s['duration_s']['max']} s; TRE max "
-              f"{s['tre_max_mm']} mm; slowest tracking {s['tracking_hz_min']} frames/s")
+              f"{fmt(s['duration_s']['median'], 1)} s, max {fmt(s['duration_s']['max'], 1)} "
+              f"s; TRE max {fmt(s['tre_max_mm'], 3)} mm; slowest tracking "
+              f"{fmt(s['tracking_hz_min'], 2)} frames/s")
         for why in s["failures"]:
             print(f"  failed: {why}")
     return 0 if doc["passed"] == doc["runs"] else 1
@@ -482,7 +524,20 @@ def build_parser() -> argparse.ArgumentParser:
                         "controller, Modbus drive, serial e-stop box, GigE cameras) and "
                         "write its configuration")
     pe.add_argument("--out", required=True, help="folder for cell.toml and the e-stop link")
-    pe.add_argument("--no-cameras", action="store_true", help="leave the cameras out")
+    pe.add_argument("--cameras", choices=("rendered", "pattern", "none"), default="rendered",
+                    help="rendered (default): the simulated cell's stereo pair and endoscope "
+                         "showing the arm and wrist where the peers have them, with the "
+                         "cell's calibration and ground truth; pattern: Aravis's test "
+                         "pattern only; none")
+    pe.add_argument("--no-cameras", action="store_const", dest="cameras", const="none",
+                    help="the same as --cameras none")
+    pe.add_argument("--frame-rate", type=float, default=None,
+                    help="camera frame rate, Hz (default 1.5 rendered, 10 pattern)")
+    pe.add_argument("--camera-latency", type=float, default=0.0,
+                    help="s from a rendered frame's capture to its transfer (0..1)")
+    pe.add_argument("--camera-clock-offset", type=float, default=0.0,
+                    help="s, the rendered cameras' clock minus this machine's monotonic "
+                         "clock")
     pe.add_argument("--json", action="store_true", help="print one JSON object")
     pe.set_defaults(func=cmd_sim_peers)
 
@@ -584,6 +639,17 @@ def build_parser() -> argparse.ArgumentParser:
     fa.add_argument("--out", required=True, help="folder for faults.json and faults.png")
     fa.add_argument("--json", action="store_true", help="print the targets as one JSON object")
     fa.set_defaults(func=cmd_bench_faults)
+    hl = bn.add_parser("hil", help="the main job on the hardware-in-the-loop cell (protocol "
+                                   "peers, rendered GigE cameras): TRE against the peers' "
+                                   "truth, latency, tracking rate (minutes a run)")
+    hl.add_argument("--runs", type=int, default=1, help="demo runs, each on fresh peers")
+    hl.add_argument("--camera-latency", type=float, default=0.0,
+                    help="s from a rendered frame's capture to its transfer (0..1)")
+    hl.add_argument("--camera-clock-offset", type=float, default=0.0,
+                    help="s, the cameras' clock minus this machine's monotonic clock")
+    hl.add_argument("--out", required=True, help="folder for hil.json and each run's log")
+    hl.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    hl.set_defaults(func=cmd_bench_hil)
     bd = bn.add_parser("busy-demo", help="the main job (oralnavd --demo) run again and again "
                                          "while other processes keep every core busy "
                                          "(about 40 s a run on 2 cores)")

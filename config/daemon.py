@@ -43,8 +43,21 @@ class CellSection(Strict):
     # validate_default: the check below must also run when scene is left out
     scene: str | None = Field(None, validate_default=True)
     # the moving simulated cell (docs/formats.md, "Cell file"): what oralnavd's sim
-    # cameras render from the sim arm's state
+    # cameras render from the sim arm's state; on a hardware-in-the-loop cell of protocol
+    # peers, the cell the peers render (its suture targets are what --demo registers)
     sim_cell: str | None = None
+    # the ground truth of a hardware-in-the-loop cell (oralnav sim peers): its loopback
+    # URL, GET ?t=<s>; the daemon measures each reached target's TRE against it. Never on
+    # a real cell: it has no truth
+    truth: str | None = None
+
+    @field_validator("truth")
+    @classmethod
+    def _loopback_truth(cls, v: str | None) -> str | None:
+        if v is not None and not v.startswith(("http://127.0.0.1:", "http://localhost:")):
+            raise ValueError(f"must be a loopback http URL (http://127.0.0.1:PORT/truth), "
+                             f"got {v!r}")
+        return v
 
     @field_validator("scene")
     @classmethod

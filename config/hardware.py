@@ -47,6 +47,10 @@ class URSection(Strict):
     watchdog_timeout: Annotated[Float, Field(gt=0, le=1.0)] = 0.05
     stop_decel: Annotated[Float, Field(gt=0, le=40)] = 10.0          # m/s^2
     connect_timeout: Annotated[Float, Field(gt=0, le=30)] = 2.0
+    # s without new controller data before the arm reads disconnected (the loop stops it)
+    stale_timeout: Annotated[Float, Field(gt=0, le=2.0)] = 0.1
+    # s without new data before the link is dropped and reopened
+    link_timeout: Annotated[Float, Field(gt=0, le=30)] = 1.0
     upper_range_registers: bool = False   # RTDE registers 24-47, leaving 0-23 to a fieldbus
 
 

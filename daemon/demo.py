@@ -47,6 +47,7 @@ async def play_operator(port: int, clear: dict[str, str],
                    for n, p in targets_OM.items()]
         r = await api.post("/targets", json={"targets": targets})
         r.raise_for_status()
+        result["targets"] = [t["name"] for t in targets]
         _say(f"registered {len(targets)} suture targets in the opener frame")
         r = await api.post("/procedure/start")
         r.raise_for_status()
@@ -85,13 +86,32 @@ async def play_operator(port: int, clear: dict[str, str],
         result["tre_max_mm"] = float(np.max(tre))
 
 
-def print_result(result: dict[str, Any]) -> None:
+def demo_summary(result: dict[str, Any]) -> dict[str, Any]:
+    """The main job's figures as ``--json`` prints them at the top level: ``targets``
+    (name -> ``{"tre_mm"}``, None where no truth was measured), ``latency_ms`` (``p50``,
+    ``p99``: capture to command), ``tracking_hz`` (the slowest camera source's rate) and
+    ``final_state``."""
+    tre = result.get("tre_mm", {})
+    rates = [hz for name, hz in result.get("rates_hz", {}).items()
+             if name.startswith("tracking")]
+    lat = result.get("latency_ms") or {}
+    return {"targets": {n: {"tre_mm": tre.get(n)} for n in result.get("targets", [])},
+            "latency_ms": {"p50": lat.get("p50"), "p99": lat.get("p99")},
+            "tracking_hz": min(rates) if rates else None,
+            "final_state": result.get("state")}
+
+
+def print_result(result: dict[str, Any], backend: str = "sim") -> None:
     """The main job's summary on stdout."""
     done = "done" if result.get("done") else "NOT done"
-    print(f"two-stage navigation on the simulated cell: {done} in "
+    where = "the simulated cell" if backend == "sim" else "the hardware cell"
+    print(f"two-stage navigation on {where}: {done} in "
           f"{result.get('duration_s', 0):.1f} s (final state {result.get('state')})")
     for name, tre in result.get("tre_mm", {}).items():
         print(f"  {name:10s} TRE {tre:.3f} mm (end-effector against the target, ground truth)")
+    missing = [n for n in result.get("targets", []) if n not in result.get("tre_mm", {})]
+    if missing and result.get("done"):
+        print(f"  no ground truth for {', '.join(missing)} (a real cell has none)")
     if "tre_mean_mm" in result:
         print(f"  mean TRE {result['tre_mean_mm']:.3f} mm, max {result['tre_max_mm']:.3f} mm")
     loop = result.get("control_loop", {})

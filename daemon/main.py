@@ -97,12 +97,13 @@ def run(argv: Sequence[str] | None = None) -> int:
     doc: dict[str, Any] = {"config": str(cfg.path), "valid": True, "backend": s.cell.backend,
                            "api": {"host": s.api.host, "port": port}}
     if args.demo:
-        if s.cell.backend != "sim" or cfg.cell is None:
-            _log("--demo needs the sim backend with [cell] sim_cell")
+        if cfg.cell is None:
+            _log("--demo needs [cell] sim_cell: the cell whose suture targets it registers "
+                 "(the simulated cell, or the one a cell of protocol peers renders)")
             return 2
         import anyio
 
-        from oralnav.daemon.demo import play_operator, print_result
+        from oralnav.daemon.demo import demo_summary, play_operator, print_result
         from oralnav.daemon.service import run_service
         logging.basicConfig(level=logging.WARNING, format="oralnavd: %(name)s: %(message)s")
         result: dict[str, Any] = {}
@@ -119,10 +120,11 @@ def run(argv: Sequence[str] | None = None) -> int:
             rc = 1
         doc["demo"] = result
         doc["demo_s"] = round(time.perf_counter() - t0, 2)
+        doc.update(demo_summary(result))
         if args.json:
             print(json.dumps(doc))
         else:
-            print_result(result)
+            print_result(result, s.cell.backend)
         return rc if result.get("done") else 1
     if args.check:
         if args.json:

@@ -20,7 +20,8 @@ configuration and the calibration files: no simulator object.
   cell (no navigation calibration, no entry pose, a stage whose poses no camera tracks);
   the core refuses ``POST /procedure/start`` with it (409).
 - **Observers.** ``on_reached(target, stamp) -> TRE in mm or None`` callbacks measure what
-  was reached; only the simulated cell attaches one (``daemon/sim_cell.py``, ground truth).
+  was reached, in a worker thread; only simulated cells attach them (``daemon/sim_cell.py``:
+  the simulated cell's ground truth, or a hardware-in-the-loop cell's peers').
 """
 
 from __future__ import annotations
@@ -195,7 +196,7 @@ class NavigationTask:
                     error_deg=math.degrees(step.error_rad), target=step.target,
                     tre_mm=dict(self.tre_mm))
         if step.reached:
-            self._reached(step.reached, stamp)
+            await self._reached(step.reached, stamp)
         if step.stage != before:
             self.progress({"adjust": "stage adjust: intra-oral, endoscope (eq. 6)",
                            "targets": "stage targets: suture targets followed in the base "
@@ -249,9 +250,11 @@ class NavigationTask:
         out, _ = step_toward(now, goal, s.max_step, math.radians(s.max_turn_deg))
         return out
 
-    def _reached(self, target: str, stamp: float) -> None:
+    async def _reached(self, target: str, stamp: float) -> None:
         for observe in self.observers:
-            tre = observe(target, stamp)
+            # in a worker thread: a peer's truth service may take a while to answer, and
+            # the event loop also runs the supervisor
+            tre = await anyio.to_thread.run_sync(observe, target, stamp)
             if tre is not None:
                 self.tre_mm[target] = tre
                 self.core.procedure_info["tre_mm"] = dict(self.tre_mm)

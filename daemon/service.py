@@ -234,17 +234,18 @@ async def _run(cfg: DaemonConfig, api_port: int | None, api_sock: Any,
 def build_navigation(cfg: DaemonConfig, core: DaemonCore) -> tuple[Any, Any, Any]:
     """The capture pipeline and the navigation listening to it, the same for every cell,
     and the simulated cell (None on a hardware cell). On the simulated cell its renderer
-    is the one source and ground
-    truth observes what is reached; on a hardware cell the configured cameras are the
-    sources. The navigation's refusal guards ``POST /procedure/start``, and its hand-eye
-    places the opener for guided insertion."""
+    is the one source and its ground truth observes what is reached; on a hardware cell
+    the configured cameras are the sources, and a hardware-in-the-loop cell's peers
+    (``[cell] truth``) observe. The navigation's refusal guards ``POST /procedure/start``,
+    and its hand-eye places the opener for guided insertion."""
     from oralnav.daemon.capture_task import CapturePipeline, hardware_sources, sim_sources
     from oralnav.daemon.navigation_task import NavigationTask, nav_calibration
 
     s = cfg.settings
     observers: list[Callable[..., Any]] = []
     cell = None
-    if cfg.cell is not None:
+    simulated = s.cell.backend == "sim"
+    if simulated and cfg.cell is not None:
         from oralnav.daemon.sim_cell import ArmProbe, SimTruth
         from oralnav.sim.world.cell import SimCell
 
@@ -257,13 +258,18 @@ def build_navigation(cfg: DaemonConfig, core: DaemonCore) -> tuple[Any, Any, Any
         observers.append(SimTruth(cell))
     else:
         sources = hardware_sources(cfg)
+    if s.cell.truth:  # a hardware-in-the-loop cell of protocol peers: they know the truth
+        from oralnav.daemon.sim_cell import PeerTruth
+
+        observers.append(PeerTruth(s.cell.truth))
     missing = cfg.missing_calibrations()
     try:
-        calibration = nav_calibration(cfg.calibrations, cfg.cell)
+        # only the simulated cell may stand in its truth for a missing calibration file
+        calibration = nav_calibration(cfg.calibrations, cfg.cell if simulated else None)
         why = ""
     except KeyError as exc:
         calibration, why = None, str(exc.args[0])
-    if cfg.cell is not None:
+    if cell is not None:
         _log("navigation calibration: " + (
             f"files of cell {s.calibration.cell!r}" if s.calibration and not missing else
             f"the simulated cell's truth for {', '.join(missing)}"))

@@ -71,3 +71,35 @@ class SimTruth:
         if p_true is None:  # a target the operator registered that the cell does not hold
             return None
         return float(np.linalg.norm(truth["T_B_E"][:3, 3] - p_true)) * 1e3
+
+
+class PeerTruth:
+    """A navigation observer for a hardware-in-the-loop cell of protocol peers (``[cell]
+    truth``, ``oralnav sim peers``): the TRE (mm) of a reached target against the truth
+    the peers report for the capture at or before the reaching frame's stamp. None (and a
+    warning) when the peers do not answer within ``timeout`` s or do not know the target.
+    A loopback request, once per target, made in a worker thread (the navigation's); the
+    peers' process renders three views with the GIL mostly held, so it may take a second
+    to answer on a busy machine."""
+
+    def __init__(self, url: str, timeout: float = 5.0) -> None:
+        self.url, self.timeout = url, timeout
+
+    def __call__(self, target: str, stamp: float) -> float | None:
+        import json
+        import urllib.error
+        import urllib.request
+
+        try:
+            with urllib.request.urlopen(f"{self.url}?t={stamp!r}",
+                                        timeout=self.timeout) as r:
+                truth = json.load(r)
+        except (urllib.error.URLError, OSError, ValueError) as exc:
+            log.warning("TRE of %s not measured: the peers' truth at %s: %s", target,
+                        self.url, exc)
+            return None
+        p_true = truth.get("targets_B", {}).get(target)
+        if p_true is None:
+            log.warning("TRE of %s not measured: the peers' cell has no such target", target)
+            return None
+        return float(np.linalg.norm(np.array(truth["T_B_E"])[:3, 3] - np.array(p_true))) * 1e3

@@ -182,7 +182,7 @@ def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:
 
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     with HardwarePeers(tmp_path, ur_host=f"127.84.{os.getpid() % 250}.1",
-                       cameras=ARAVIS_MISSING is None) as peers:
+                       cameras="pattern" if ARAVIS_MISSING is None else "none") as peers:
         ur, box = peers.ur, peers.box
         cams = peers.camera_addresses
         config = peers.write_config()

@@ -45,6 +45,9 @@ from oralnav.sim.peers.ur.server import Conn, ServerLoop
 
 __all__ = ["FakeURController"]
 
+#: The most motion steps one catch-up cycle takes (a host stall of many periods).
+MAX_SUBSTEPS = 25
+
 
 class FakeURController(ServerLoop, RTDEOutputs, ControlScript, DashboardServer, Injections):
     """A fake UR controller on ``host`` (see :mod:`oralnav.sim.peers.ur`).
@@ -170,13 +173,18 @@ class FakeURController(ServerLoop, RTDEOutputs, ControlScript, DashboardServer, 
         if self._running:
             self._script_cycle()
         self._check_watchdog()
-        for _ in range(n):
-            self._tcp.step(self.period)
+        # the motion covers all n cycles, in at most MAX_SUBSTEPS steps: a host that stalled
+        # long costs no more than 25 steps, and the clock still never loses time (a real
+        # controller's timestamp is real time, which the driver maps onto its host's clock)
+        steps = min(n, MAX_SUBSTEPS)
+        for _ in range(steps):
+            self._tcp.step(n * self.period / steps)
         if self._frozen:
             return
         values = self._outputs()
         for conn in list(self._conns):
-            if isinstance(conn, RTDEConn) and conn.started and self._tick % conn.out_every == 0:
+            if (isinstance(conn, RTDEConn) and conn.started
+                    and self._tick // conn.out_every != (self._tick - n) // conn.out_every):
                 conn.data_package(values)
 
     def _event(self, what: str, **info: Any) -> None:

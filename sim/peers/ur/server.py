@@ -227,7 +227,7 @@ class ServerLoop:
                     if n > 1:
                         self._overruns += 1
                     try:
-                        self._cycle(min(n, 25))
+                        self._cycle(n)
                     except Exception:  # a bug here must not kill the controller
                         log.exception("fake UR controller: cycle failed")
                     next_tick += n * self.period

@@ -1,0 +1,152 @@
+"""The simulated cell's cameras as GigE Vision cameras on loopback, showing the arm and
+the wrist where their protocol peers actually are.
+
+:class:`CellCameras` builds a :class:`~oralnav.sim.world.cell.SimCell` whose arm pose is
+read from the fake UR controller and whose wrist joints from the drive unit (callables
+given by the caller), and one :class:`~oralnav.sim.peers.gige_render.RenderedGvCamera` per
+camera of the cell's rigs (the stereo pair and the endoscope). Cameras at one frame rate
+tick together; at each tick the first camera to ask renders every view of one capture of
+the cell (one arm pose, one instant) and the others take their view of that same capture,
+as cameras on a shared trigger would. Each capture's ground truth is kept
+(:meth:`CellCameras.truth_at`) for the truth service.
+
+The capture instant is the midpoint of reading the arm pose (an RPC to the controller's
+process, about a millisecond): the pose the frame shows is the arm's at that instant.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from oralnav.sim.errors import SimError
+from oralnav.sim.peers.gige_render import RenderedGvCamera
+from oralnav.sim.world.cell import CellConfig, SimCell
+
+__all__ = ["CellCameras"]
+
+log = logging.getLogger(__name__)
+
+
+class _Capture:
+    """One capture of the cell: every view, its instant, the cameras that took it."""
+
+    def __init__(self, images: dict[str, np.ndarray], t: float) -> None:
+        self.images, self.t = images, t
+        self.taken: set[str] = set()
+
+
+class CellCameras:
+    """See the module docstring.
+
+    Args:
+        config: the cell (its scenes name the rigs, fields and imaging).
+        arm_pose: the arm's ``T_B_tcp`` now (4x4, m), read from its peer.
+        wrist_joints: the wrist's joints now ``[roll, pitch, yaw, jaw]`` (rad).
+        frame_rate: Hz of every camera until a driver sets its own.
+        latency_s: s from capture to the first packet (each camera).
+        clock_offset_s: the cameras' clock minus the host's monotonic clock, s.
+        keep: captures whose truth is kept.
+    """
+
+    def __init__(self, config: CellConfig, arm_pose: Callable[[], np.ndarray],
+                 wrist_joints: Callable[[], np.ndarray], *, frame_rate: float = 5.0,
+                 latency_s: float = 0.0, clock_offset_s: float = 0.0,
+                 keep: int = 512) -> None:
+        self._arm_pose = arm_pose
+        self._T = np.eye(4)
+        self.cell = SimCell(config, self._pose, wrist_joints, self._sample)
+        self.names = self.cell.camera_names
+        self.frame_rate, self.latency_s = float(frame_rate), float(latency_s)
+        self.clock_offset_s = float(clock_offset_s)
+        self._lock = threading.Lock()
+        self._latest: _Capture | None = None
+        self._truths: deque[tuple[float, dict[str, Any]]] = deque(maxlen=keep)
+        self.cameras: dict[str, RenderedGvCamera] = {}
+
+    # -- the arm pose of one capture ------------------------------------------------------
+    def _sample(self) -> float:
+        """The cell's clock, read first at each capture: reads the arm pose and returns
+        the instant it describes (the midpoint of the read)."""
+        t0 = time.monotonic()
+        self._T = np.array(self._arm_pose(), dtype=float)
+        return 0.5 * (t0 + time.monotonic())
+
+    def _pose(self) -> np.ndarray:
+        return self._T
+
+    # -- the cameras ----------------------------------------------------------------------
+    def start(self) -> None:
+        """Build the renderer's maps, render one capture (the cameras' first frame must
+        not wait on the renderer's set-up) and start a camera per view."""
+        self.cell.prepare()
+        self._view(self.names[0])
+        try:
+            for name in self.names:
+                rig = (self.cell.stereo_rig if name in self.cell.stereo_rig.names
+                       else self.cell.endoscope_rig)
+                cam = RenderedGvCamera(lambda n=name: self._view(n), size=tuple(rig[name].size),
+                                       latency_s=self.latency_s,
+                                       clock_offset_s=self.clock_offset_s,
+                                       frame_rate=self.frame_rate)
+                cam.start()
+                self.cameras[name] = cam
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        for cam in self.cameras.values():
+            cam.close()
+
+    def __enter__(self) -> CellCameras:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def addresses(self) -> dict[str, str]:
+        """Camera name -> the loopback address it binds."""
+        return {n: c.address for n, c in self.cameras.items() if c.address}
+
+    def _view(self, name: str) -> tuple[np.ndarray, float]:
+        """Camera ``name``'s image of the newest capture it has not taken yet, rendering a
+        new capture of every view when it has taken the newest (module docstring)."""
+        with self._lock:  # the others wait for the capture they will take too
+            cap = self._latest
+            if cap is None or name in cap.taken:
+                images, t = self.cell.capture(self.names)
+                truth = self.cell.truth()
+                cap = self._latest = _Capture(images, t)
+                self._truths.append((t, truth))
+            cap.taken.add(name)
+            return cap.images[name], cap.t
+
+    # -- ground truth ---------------------------------------------------------------------
+    def truth_at(self, t: float | None = None) -> dict[str, Any]:
+        """The truth of the newest capture at or before ``t`` (s, host monotonic; None:
+        the newest): ``time``, ``T_B_tcp``, ``T_B_E`` (4x4, m), ``q`` and
+        ``targets_B`` (name -> (3,) m). Raises :class:`SimError` when there is none."""
+        with self._lock:
+            items = list(self._truths)
+        if not items:
+            raise SimError("no capture yet")
+        if t is None:
+            when, truth = items[-1]
+        else:
+            i = bisect.bisect_right([w for w, _ in items], t)
+            if i == 0:
+                raise SimError(f"no capture kept at or before {t:.6f} s (the oldest is "
+                               f"{items[0][0]:.6f} s)")
+            when, truth = items[i - 1]
+        return {"time": when, "T_B_tcp": truth["T_B_tcp"], "T_B_E": truth["T_B_E"],
+                "q": truth["q"], "targets_B": self.cell.targets_B()}
