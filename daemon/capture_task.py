@@ -21,8 +21,9 @@ Faults: a camera that fails to start is a FAULT naming it, and the start is retr
 back-off, so the cell recovers when the camera returns; one that delivers images of another
 size than its calibration is a FAULT too. The daemon keeps serving. A read error is logged
 and the read retried: the drivers reconnect by themselves, and a camera whose counter stops
-trips the camera-stall watchdog. A tracking or listener failure is a FAULT, never the
-daemon's end.
+trips the camera-stall watchdog. A camera whose clock goes back or jumps (``ClockError``,
+with ``timestamps = "device"``) is a FAULT naming it: its frames cannot be placed in time.
+A tracking or listener failure is a FAULT, never the daemon's end.
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ from oralnav.daemon.core import DaemonCore
 from oralnav.drivers.camera import Camera, open_camera
 from oralnav.drivers.camera.sim import FrameSource, SimCameraSet
 from oralnav.drivers.camera.stereo import StereoCamera
-from oralnav.drivers.errors import DriverError
+from oralnav.drivers.errors import ClockError, DriverError
 
 __all__ = ["FIELD_FRAMES", "CapturePipeline", "Source", "TrackedRound", "hardware_sources",
            "sim_sources"]
@@ -210,6 +211,10 @@ class CapturePipeline:
             while True:
                 try:
                     frames = await stream.read()
+                except ClockError as exc:  # frames that cannot be placed in time: a fault
+                    log.error("cameras %s: %s", name, exc)
+                    core.supervisor.fault(core.clock(), f"camera {name}", str(exc))
+                    continue
                 except DriverError as exc:  # the driver reconnects on a later read
                     if time.monotonic() - last_log > _LOG_EVERY_S:
                         log.warning("cameras %s: %s", name, exc)

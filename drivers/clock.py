@@ -13,7 +13,7 @@ from typing import Protocol, runtime_checkable
 
 from oralnav.checks import NumberMessages, finite_number
 
-__all__ = ["Clock", "VirtualClock", "WallClock"]
+__all__ = ["Clock", "DeviceClockMap", "VirtualClock", "WallClock"]
 
 # One wording for every refused time value; ValueError, as the clocks always raised.
 _SECONDS = NumberMessages.uniform("{what} must be a finite number of seconds, got {value!r}")
@@ -75,3 +75,62 @@ class VirtualClock:
 
     def __repr__(self) -> str:
         return f"VirtualClock(now={self.now()!r})"
+
+
+class DeviceClockMap:
+    """Maps a device's clock (a camera's frame timestamps, s) onto the host's monotonic
+    clock, from each frame's device timestamp and its arrival time on the host.
+
+    ``arrival - device`` is the clocks' offset plus the frame's transfer delay, so its
+    smallest value seen is the offset plus the shortest delay: the mapped time
+    ``device + offset`` is the capture instant plus that shortest delay (a constant the
+    temporal calibration measures). The estimate follows the smallest value down at once,
+    and may rise by ``drift`` s per s (1e-4: 100 ppm, far above a crystal's), so a device
+    clock that runs slower than the host's is followed too.
+
+    A device timestamp that does not increase, or a device clock suddenly ahead by more
+    than ``jump`` s (a clock set forward, a camera that restarted its clock), raises
+    :class:`~oralnav.drivers.errors.ClockError`; the map then starts afresh from the next
+    frame. A frame that arrives late is no error: the smallest difference is kept. Pure
+    arithmetic, no I/O; not thread-safe (one camera's reader).
+    """
+
+    def __init__(self, *, drift: float = 1e-4, jump: float = 0.5) -> None:
+        self.drift = finite_number(drift, "drift", ValueError, messages=_SECONDS)
+        self.jump = finite_number(jump, "jump", ValueError, messages=_SECONDS)
+        if self.drift < 0 or self.jump <= 0:
+            raise ValueError(f"drift must be >= 0 and jump > 0 s, got {drift!r}, {jump!r}")
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the offset (a new link, or after a clock error)."""
+        self.offset: float | None = None
+        self._device: float | None = None
+        self._host = 0.0
+
+    def map(self, device: float, arrival: float) -> float:
+        """The host-clock time (s) of device time ``device`` (s), given that its frame
+        arrived at host time ``arrival`` (s). Raises ``ClockError`` (module docstring)."""
+        from .errors import ClockError
+
+        seen = arrival - device
+        if self.offset is None or self._device is None:
+            self.offset, self._device, self._host = seen, device, arrival
+            return device + seen
+        if device <= self._device:
+            back = self._device - device
+            self.reset()
+            raise ClockError(f"the device clock went back by {back * 1e3:.3f} ms (or stood "
+                             "still): its frames cannot be placed in time")
+        allowed = self.offset + self.drift * max(arrival - self._host, 0.0)
+        if seen < allowed - self.jump:
+            # the device is suddenly ahead by more than any transfer delay shrinks: its
+            # clock was set forward (a frame that arrives late is only late: the map
+            # keeps the smallest difference, so it changes nothing)
+            moved = allowed - seen
+            self.reset()
+            raise ClockError(f"the device clock jumped by {moved * 1e3:+.1f} ms against the "
+                             f"host's (more than {self.jump * 1e3:.0f} ms in one frame)")
+        self.offset = min(allowed, seen)
+        self._device, self._host = device, arrival
+        return device + self.offset

@@ -8,6 +8,8 @@ the CLI) can catch the layer as a whole and still tell the kinds apart:
 - :class:`DriverIOError`: an opened device failed while in use (lost frame, undecodable
   frame, read before ``start()`` or after ``close()``).
 - :class:`DriverTimeoutError`: a device did not answer in time.
+- :class:`ClockError`: a device's clock went back or jumped: its timestamps cannot be
+  placed on the host's clock (a fault, not a read to retry).
 - :class:`EndOfStream`: a finite source (a recording) has no more data.
 """
 
@@ -26,6 +28,11 @@ class DriverIOError(DriverError):
 
 class DriverTimeoutError(DriverError, TimeoutError):
     """A device did not answer within its deadline (also a built-in ``TimeoutError``)."""
+
+
+class ClockError(DriverIOError):
+    """A device's clock went back, stood still or jumped, so its timestamps cannot be mapped
+    onto the host's clock; the message says by how much. The frame is not delivered."""
 
 
 class EndOfStream(DriverIOError):

@@ -59,7 +59,14 @@ from gi.repository import Aravis, GLib  # noqa: E402  (needs require_version fir
 
 from oralnav.checks import NumberMessages, finite_number, positive_number  # noqa: E402
 
-from ..errors import DriverError, DriverInitError, DriverIOError, DriverTimeoutError  # noqa: E402
+from ..clock import DeviceClockMap  # noqa: E402
+from ..errors import (  # noqa: E402
+    ClockError,
+    DriverError,
+    DriverInitError,
+    DriverIOError,
+    DriverTimeoutError,
+)
 from ..lifecycle import LifecycleState  # noqa: E402
 from .base import Camera, CameraFrame  # noqa: E402
 
@@ -374,6 +381,12 @@ class AravisCamera(Camera):
             default: the camera's.
         reconnect: re-establish a lost link on the following reads.
         reconnect_backoff: (first, max) s between reconnect attempts, doubling.
+        timestamps: what ``CameraFrame.timestamp`` is: ``"arrival"``, when the frame
+            arrived on this computer (default), or ``"device"``, the camera's own frame
+            timestamp mapped onto ``time.monotonic()`` (:class:`~..clock.DeviceClockMap`):
+            the capture instant plus the shortest transfer delay, free of each frame's
+            transfer jitter. A device clock that goes back or jumps is a
+            :class:`~..errors.ClockError` from ``read()``, never a frame placed wrongly.
 
     After ``start()``: ``device`` (the :class:`AravisDevice` opened), ``applied`` (the
     settings read back from the camera) and the counters ``delivered``, ``lost_frames``,
@@ -399,6 +412,7 @@ class AravisCamera(Camera):
         packet_size: int | None = None,
         reconnect: bool = True,
         reconnect_backoff: tuple[float, float] = (0.2, 5.0),
+        timestamps: str = "arrival",
     ) -> None:
         if camera_id is not None and (not isinstance(camera_id, str) or not camera_id.strip()):
             raise DriverInitError(f"aravis camera_id must be a non-empty string or None, "
@@ -461,6 +475,11 @@ class AravisCamera(Camera):
             raise DriverInitError(f"{what}: reconnect_backoff must be (first, max) s with "
                                   f"0 < first <= max, got {reconnect_backoff!r}")
         self.reconnect_backoff = (lo, hi)
+        if timestamps not in ("arrival", "device"):
+            raise DriverInitError(f"{what}: timestamps must be 'arrival' or 'device', "
+                                  f"got {timestamps!r}")
+        self.timestamps = timestamps
+        self._clock_map = DeviceClockMap()
 
         self._lock = threading.Lock()  # the SDK objects below
         self._life = LifecycleState()  # changed under _lock
@@ -640,6 +659,7 @@ class AravisCamera(Camera):
         elif self._last_raw is None:  # first frame of a new link
             frame_id = self._frame_id + 1
             self._epoch += 1
+            self._clock_map.reset()  # a new link: the camera may have restarted its clock
         else:
             step = raw.frame_id - self._last_raw
             if step <= 0 and gv and self._last_raw > _GV_ID_WRAP - _GV_WRAP_MARGIN \
@@ -649,6 +669,7 @@ class AravisCamera(Camera):
                 log.warning("%s: frame id went from %d to %d; counter reset", self._label(),
                             self._last_raw, raw.frame_id)
                 self._epoch += 1
+                self._clock_map.reset()  # a restarted camera restarted its clock too
                 step = 1
             else:
                 lost = step - 1
@@ -662,6 +683,11 @@ class AravisCamera(Camera):
         stamp = raw.system_ns * 1e-9 - (time.time() - now)
         if not (now - 60.0 <= stamp <= now):  # the wall clock was stepped
             stamp = now
+        if self.timestamps == "device":
+            try:
+                stamp = self._clock_map.map(raw.device_ns * 1e-9, stamp)
+            except ClockError as exc:
+                raise ClockError(f"{self._label()}: {exc}") from None
         stamp = max(stamp, self._last_stamp)
         self._last_stamp = stamp
         frame = AravisFrame(image=raw.image, timestamp=stamp, counter=self._counter,

@@ -70,6 +70,8 @@ class CellCameras:
         self._latest: _Capture | None = None
         self._truths: deque[tuple[float, dict[str, Any]]] = deque(maxlen=keep)
         self.cameras: dict[str, RenderedGvCamera] = {}
+        #: how long each of the last captures took to render (s), for diagnosis
+        self.render_s: deque[float] = deque(maxlen=256)
 
     # -- the arm pose of one capture ------------------------------------------------------
     def _sample(self) -> float:
@@ -88,6 +90,9 @@ class CellCameras:
         not wait on the renderer's set-up) and start a camera per view."""
         self.cell.prepare()
         self._view(self.names[0])
+        # the warm-up capture is never sent: a camera's first frame must be fresh (a
+        # frame seconds old would read as a camera clock that jumped)
+        self._latest.taken.update(self.names)
         try:
             for name in self.names:
                 rig = (self.cell.stereo_rig if name in self.cell.stereo_rig.names
@@ -124,7 +129,9 @@ class CellCameras:
         with self._lock:  # the others wait for the capture they will take too
             cap = self._latest
             if cap is None or name in cap.taken:
+                t0 = time.monotonic()
                 images, t = self.cell.capture(self.names)
+                self.render_s.append(time.monotonic() - t0)
                 truth = self.cell.truth()
                 cap = self._latest = _Capture(images, t)
                 self._truths.append((t, truth))

@@ -395,3 +395,33 @@ async def test_close_during_a_read_ends_it(fakes):
         await cam.close()
     assert "closed during read()" in outcome[0][0]
     assert outcome[0][1] - t_close < 0.5
+
+
+# -- device timestamps mapped onto the monotonic clock (issue 32) ---------------------------
+
+@pytest.mark.skipif(GI_MISSING is not None, reason=str(GI_MISSING))
+async def test_device_timestamps_are_mapped_onto_the_monotonic_clock():
+    """Issue 32 (time): with timestamps="device" the frames of a camera whose clock is
+    4321 s ahead of this machine's, and whose frames leave 20 ms after capture, are
+    stamped at capture + 20 ms + the shortest transfer delay (under 15 ms here), the same
+    constant for every frame once the shortest delay has been seen (spread < 3 ms); with
+    the camera's clock jumping 5 s ahead mid-stream, read() raises ClockError naming the
+    jump, and the next frames are mapped afresh."""
+    from oralnav.drivers.errors import ClockError
+    from tests.sim.peers.test_gige_render import RandomFrames, driver, rendered
+
+    source = RandomFrames()
+    offset = 4321.0
+    with rendered(source, clock_offset_s=offset, latency_s=0.02) as camera:
+        async with driver(camera, timestamps="device") as cam:
+            frames = [await cam.read() for _ in range(30)]
+            lags = [f.timestamp - source.find(f.device_timestamp - offset)[0]
+                    for f in frames]
+            assert 0.02 <= min(lags) and max(lags) < 0.02 + 0.015, lags
+            assert max(lags[10:]) - min(lags[10:]) < 0.003, lags
+            camera.clock_offset_s = offset + 5.0  # the camera's clock set forward
+            with pytest.raises(ClockError, match=r"jumped by \+(4|5)\d\d\d\.\d ms"):
+                for _ in range(10):
+                    await cam.read()
+            after = await cam.read()
+            assert abs(after.timestamp - time.monotonic()) < 1.0
