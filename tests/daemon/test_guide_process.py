@@ -39,14 +39,16 @@ from tests.daemon.guide_cell import (
     small_scene,
     start_pose,
 )
+from tests.helpers import LOADED_MACHINE
 
 SEED = 7
 STALE_POSE = 0.2   # s, the loop's limit in these tests (the daemon's, from sim.toml, is 1 s)
 #: Deadline limits wide enough for a 2-core machine whose cores the test process and the
-#: planner's worker thread share with the loop (periods up to ~10 ms late were seen there);
-#: the deadline trips themselves are tested in test_control_loop.py.
+#: planner's worker thread share with the loop (periods up to ~10 ms late were seen there,
+#: and once 100 periods in a row 3.7 ms late in a full suite run, 2026-11-27): the shared
+#: loaded-machine limits; the deadline trips themselves are tested in test_control_loop.py.
 LOOP = LoopSettings(rate_hz=500.0, stale_pose=STALE_POSE, driver_silence=0.3,
-                    deadline_misses=100, max_period_lateness=0.1)
+                    **LOADED_MACHINE)
 
 
 class Rig:
