@@ -4,20 +4,14 @@ the wrist where their protocol peers actually are.
 :class:`CellCameras` builds a :class:`~oralnav.sim.world.cell.SimCell` whose arm pose is
 read from the fake UR controller and whose wrist joints from the drive unit (callables
 given by the caller), and one :class:`~oralnav.sim.peers.gige_render.RenderedGvCamera` per
-camera of the cell's rigs (the stereo pair and the endoscope).
-
-One render thread captures the cell at the cameras' frame instants (multiples of the frame
-period on the wall clock, the instants the cameras send at): every view of one capture, one
-arm pose, one instant, as cameras on a shared trigger expose. Each camera sends its view of
-a capture ``RENDER_PERIODS`` frame periods after it was taken (plus the configured
-latency), so the capture-to-send delay is the same for every frame even though rendering
-three 2-Mpixel views takes a varying part of those periods; a capture that is not ready by
-then is skipped by every camera. A constant delay is what a real camera has (exposure,
-readout, transfer), and what lets the daemon map the cameras' clock onto its own.
+camera of the cell's rigs (the stereo pair and the endoscope). Cameras at one frame rate
+tick together; at each tick the first camera to ask renders every view of one capture of
+the cell (one arm pose, one instant) and the others take their view of that same capture,
+as cameras on a shared trigger would. Each capture's ground truth is kept
+(:meth:`CellCameras.truth_at`) for the truth service.
 
 The capture instant is the midpoint of reading the arm pose (an RPC to the controller's
-process, about a millisecond): the pose the frame shows is the arm's at that instant. Each
-capture's ground truth is kept (:meth:`CellCameras.truth_at`) for the truth service.
+process, about a millisecond): the pose the frame shows is the arm's at that instant.
 """
 
 from __future__ import annotations
@@ -36,10 +30,7 @@ from oralnav.sim.errors import SimError
 from oralnav.sim.peers.gige_render import RenderedGvCamera
 from oralnav.sim.world.cell import CellConfig, SimCell
 
-__all__ = ["RENDER_PERIODS", "CellCameras"]
-
-#: Frame periods between a capture and its frames leaving: rendering three views must fit.
-RENDER_PERIODS = 2
+__all__ = ["CellCameras"]
 
 log = logging.getLogger(__name__)
 
@@ -76,10 +67,7 @@ class CellCameras:
         self.frame_rate, self.latency_s = float(frame_rate), float(latency_s)
         self.clock_offset_s = float(clock_offset_s)
         self._lock = threading.Lock()
-        self._cv = threading.Condition(self._lock)
         self._latest: _Capture | None = None
-        self._closing = threading.Event()
-        self._thread: threading.Thread | None = None
         self._truths: deque[tuple[float, dict[str, Any]]] = deque(maxlen=keep)
         self.cameras: dict[str, RenderedGvCamera] = {}
         #: how long each of the last captures took to render (s), for diagnosis
@@ -98,25 +86,19 @@ class CellCameras:
 
     # -- the cameras ----------------------------------------------------------------------
     def start(self) -> None:
-        """Build the renderer's maps, render one capture (warming up; never sent), start
-        the render thread and a camera per view."""
+        """Build the renderer's maps, render one capture (the cameras' first frame must
+        not wait on the renderer's set-up) and start a camera per view."""
         self.cell.prepare()
-        self._render()
-        self._latest.taken.update(self.names)  # the warm-up capture is never sent
-        period = 1.0 / self.frame_rate
-        self._thread = threading.Thread(target=self._render_loop, name="cell-cameras",
-                                        daemon=True)
-        self._thread.start()
+        self._view(self.names[0])
+        # the warm-up capture is never sent: a camera's first frame must be fresh (a
+        # frame seconds old would read as a camera clock that jumped)
+        self._latest.taken.update(self.names)
         try:
             for name in self.names:
                 rig = (self.cell.stereo_rig if name in self.cell.stereo_rig.names
                        else self.cell.endoscope_rig)
-                # sent RENDER_PERIODS frame instants after the capture: the capture comes a
-                # few ms after its instant, so the send instant is the first one at or after
-                # capture + this latency
-                latency = RENDER_PERIODS * period - 0.25 * period + self.latency_s
                 cam = RenderedGvCamera(lambda n=name: self._view(n), size=tuple(rig[name].size),
-                                       latency_s=min(latency, 1.0),
+                                       latency_s=self.latency_s,
                                        clock_offset_s=self.clock_offset_s,
                                        frame_rate=self.frame_rate)
                 cam.start()
@@ -126,13 +108,8 @@ class CellCameras:
             raise
 
     def close(self) -> None:
-        self._closing.set()
-        with self._cv:
-            self._cv.notify_all()
         for cam in self.cameras.values():
             cam.close()
-        if self._thread is not None:
-            self._thread.join()
 
     def __enter__(self) -> CellCameras:
         self.start()
@@ -146,45 +123,18 @@ class CellCameras:
         """Camera name -> the loopback address it binds."""
         return {n: c.address for n, c in self.cameras.items() if c.address}
 
-    def _render(self) -> None:
-        """One capture of every view, made the newest (the cameras wait for it)."""
-        t0 = time.monotonic()
-        images, t = self.cell.capture(self.names)
-        truth = self.cell.truth()
-        with self._cv:
-            self.render_s.append(time.monotonic() - t0)
-            self._latest = _Capture(images, t)
-            self._truths.append((t, truth))
-            self._cv.notify_all()
-
-    def _render_loop(self) -> None:
-        """Capture at each frame instant (multiples of the period on the wall clock); an
-        instant that finds the previous render still running is skipped."""
-        period = 1.0 / self.frame_rate
-        while not self._closing.is_set():
-            now = time.time()
-            if self._closing.wait(period - now % period):
-                return
-            try:
-                self._render()
-            except Exception:  # a render error skips a capture, never ends the cameras
-                log.exception("rendering the cell failed; this capture is skipped")
-
     def _view(self, name: str) -> tuple[np.ndarray, float]:
-        """Camera ``name``'s image of the newest capture it has not taken yet, waiting up
-        to two frame periods for one (the camera thread's call; raising skips a frame)."""
-        deadline = time.monotonic() + 2.0 / self.frame_rate
-        with self._cv:
-            while (self._latest is None or name in self._latest.taken) \
-                    and not self._closing.is_set():
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise SimError(f"camera {name}: no new capture of the cell in "
-                                   f"{2.0 / self.frame_rate:.2f} s (rendering too slow)")
-                self._cv.wait(left)
-            if self._closing.is_set():
-                raise SimError("closing")
+        """Camera ``name``'s image of the newest capture it has not taken yet, rendering a
+        new capture of every view when it has taken the newest (module docstring)."""
+        with self._lock:  # the others wait for the capture they will take too
             cap = self._latest
+            if cap is None or name in cap.taken:
+                t0 = time.monotonic()
+                images, t = self.cell.capture(self.names)
+                self.render_s.append(time.monotonic() - t0)
+                truth = self.cell.truth()
+                cap = self._latest = _Capture(images, t)
+                self._truths.append((t, truth))
             cap.taken.add(name)
             return cap.images[name], cap.t
 
