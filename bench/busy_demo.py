@@ -27,7 +27,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["BUSY_LOOP", "demo_command", "main", "run_once", "summary"]
+__all__ = ["BUSY_LOOP", "demo_command", "free_port", "main", "run_once", "summary"]
 
 #: One busy process: integer work that never sleeps, for at most an hour.
 BUSY_LOOP = ("import time\nend = time.monotonic() + 3600\nx = 0\n"
@@ -40,7 +40,8 @@ def _say(msg: str) -> None:
     print(f"bench busy-demo: {msg}", file=sys.stderr, flush=True)
 
 
-def _free_port() -> int:
+def free_port() -> int:
+    """A free TCP port on 127.0.0.1 (for a daemon's API)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
@@ -122,7 +123,7 @@ def main(out: Path, runs: int = 10, busy: int | None = None,
     results = []
     try:
         for k in range(runs):
-            port = _free_port()
+            port = free_port()
             cmd = ([c.replace("{port}", str(port)) for c in command] if command
                    else demo_command(port))
             rec = run_once(out / f"run_{k}", cmd)

@@ -21,7 +21,7 @@ from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
-from oralnav.bench.busy_demo import _free_port, run_once
+from oralnav.bench.busy_demo import free_port, run_once
 
 __all__ = ["main"]
 
@@ -53,7 +53,7 @@ def main(out: Path, make_peers: Callable[..., AbstractContextManager[Any]], runs
             config = peers.write_config()
             rec = run_once(folder, [sys.executable, "-m", "oralnav.daemon.main", "--config",
                                     str(config), "--demo", "--json", "--api-port",
-                                    str(_free_port())])
+                                    str(free_port())])
         results.append(rec)
         _say(f"run {k + 1}/{runs}: " + ("passed" if rec["passed"] else "FAILED")
              + (f" in {rec['duration_s']:.1f} s" if rec.get("duration_s") else "")

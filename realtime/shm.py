@@ -106,12 +106,7 @@ class SharedRecord:
             return
         # numpy views must go before the mapping can close
         del self._seq, self._rec
-        shm.close()
-        if self._owner:
-            try:
-                shm.unlink()
-            except FileNotFoundError:
-                pass
+        _release(shm, self._owner)
 
 
 class SharedRing:
@@ -195,13 +190,18 @@ class SharedRing:
         shm, self._shm = getattr(self, "_shm", None), None
         if shm is None:
             return
-        del self._count, self._ring
-        shm.close()
-        if self._owner:
-            try:
-                shm.unlink()
-            except FileNotFoundError:
-                pass
+        del self._count, self._ring  # numpy views first, as for SharedRecord
+        _release(shm, self._owner)
+
+
+def _release(shm: shared_memory.SharedMemory, owner: bool) -> None:
+    """Close a block's mapping; unlink the block too on the side that created it."""
+    shm.close()
+    if owner:
+        try:
+            shm.unlink()
+        except FileNotFoundError:
+            pass
 
 
 def encode_reason(text: str) -> bytes:
