@@ -17,6 +17,7 @@
     oralnav calibrate capture-views --rig RIG --out DIR [--views N]     (simulated images)
     oralnav calibrate capture --out DIR [--samples N] [--corner-noise PX]   (simulated cell)
     oralnav calibrate chain --samples DIR --out DIR --cell ID
+    oralnav calibrate temporal --url URL | --samples DIR   (cli/temporal.py)
 
 Sample files are plain text, as numpy writes them (``numpy.savetxt``): a stack of 4x4
 matrices is 4N rows of 4 numbers (the scikit-surgery pivot format), a list of points N rows
@@ -701,3 +702,6 @@ def add_parser(sub: argparse._SubParsersAction, nested: bool = False) -> None:
     ch.add_argument("--cell", required=True, help="the cell the calibrations belong to")
     ch.add_argument("--json", action="store_true", help="print one JSON object")
     ch.set_defaults(func=cmd_chain)
+
+    from oralnav.cli import temporal  # its own module: it talks to the daemon
+    temporal.add_parser(cal)

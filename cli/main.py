@@ -37,7 +37,7 @@ from typing import Any
 import cv2
 
 from oralnav import __version__
-from oralnav.cli import calibrate, plan
+from oralnav.cli import calibrate, plan, temporal
 from oralnav.cli.extras import missing_extra, require_bench_extra
 from oralnav.cli.sheets import SheetError, render_sheet, write_png
 from oralnav.config.daemon import load_config
@@ -674,7 +674,7 @@ def run(argv: Sequence[str] | None = None) -> int:
         _fail(args, extra, 2)
         return 2
     except (ConfigError, ControlError, RenderError, SheetError, UsageError,
-            calibrate.SampleFileError, FileNotFoundError) as exc:
+            calibrate.SampleFileError, temporal.RecordError, FileNotFoundError) as exc:
         _fail(args, str(exc), 2)
         return 2
     except (OSError, RuntimeError, ValueError) as exc:

@@ -38,10 +38,11 @@ FORMAT = 1
 #: Length units a file may declare, with their size in metres.
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3}
 
-_Spec = Literal["transform", "point", "scalar", "text", "rig"]
+_Spec = Literal["transform", "point", "scalar", "seconds", "text", "rig"]
 
 #: Each kind's ``[values]`` keys and what they hold. Transforms are 4x4 rigid ``T_a_b``
-#: (pose of b in a), points (3,); both in the file's length unit. ``rig`` is a rig
+#: (pose of b in a), points (3,); both in the file's length unit. ``seconds``: one number
+#: in seconds, whatever the length unit. ``rig`` is a rig
 #: document (docs/formats.md "Rig") nested in the file: lengths in metres, pixels.
 KINDS: dict[str, dict[str, _Spec]] = {
     # tool tip in the tool (pointer) frame, pivot point in the tracker frame (eq. 3, [28])
@@ -57,6 +58,9 @@ KINDS: dict[str, dict[str, _Spec]] = {
     # intrinsics (and for stereo the extrinsics) as a rig
     "camera": {"rig": "rig"},
     "stereo": {"rig": "rig"},
+    # how late the stereo camera's timestamps are against the arm's clock (s; the daemon
+    # subtracts it): oralnav calibrate temporal
+    "temporal": {"offset_s": "seconds"},
 }
 
 
@@ -156,10 +160,10 @@ def _value_from_file(path: Path, key: str, spec: _Spec, raw: Any, scale: float) 
         raise ConfigError(path, key, "expected numbers") from None
     if not np.all(np.isfinite(arr)):
         raise ConfigError(path, key, "non-finite value (nan or inf)")
-    if spec == "scalar":
+    if spec in ("scalar", "seconds"):
         if arr.shape != ():
             raise ConfigError(path, key, f"expected one number, got shape {arr.shape}")
-        return float(arr) * scale
+        return float(arr) * (scale if spec == "scalar" else 1.0)
     if spec == "point":
         if arr.shape != (3,):
             raise ConfigError(path, key, f"expected a point [x, y, z], got shape {arr.shape}")
@@ -245,7 +249,7 @@ def calibration_to_dict(cal: Calibration) -> dict[str, Any]:
             raise ValueError(f"{cal.kind} calibration: missing value {k!r}")
         v = cal.values[k]
         values[k] = rig_to_dict(v) if spec == "rig" else _plain(np.asarray(v, dtype=float)) \
-            if spec in ("transform", "point", "scalar") else v
+            if spec in ("transform", "point", "scalar", "seconds") else v
     return {"kind": cal.kind, "format": FORMAT, "cell": cal.cell, "method": cal.method,
             "created": cal.created or _now(), "units": {"length": "m"},
             "samples": {"count": int(cal.samples.count), "sha256": cal.samples.sha256,

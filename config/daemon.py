@@ -301,6 +301,7 @@ class CalibrationSection(Strict):
     effector_zero: str | None = None       # T_RM_E0 (eqs. 3-4)
     effector_marker: str | None = None     # T_EM_E (eq. 7)
     pivot: str | None = None               # the registration pointer's tip ([28])
+    temporal: str | None = None            # the stereo camera's time offset (s)
 
 
 class NavigationSection(Strict):
@@ -374,6 +375,12 @@ class DaemonConfig:
     def missing_calibrations(self) -> list[str]:
         """The navigation chain's calibration kinds the configuration does not name."""
         return [k for k in NAVIGATION_CALIBRATIONS if k not in self.calibrations]
+
+    def stereo_time_offset(self) -> float | None:
+        """How late the stereo camera's timestamps are against the arm's clock (s): the
+        temporal calibration's ``offset_s``, or None when the configuration names none."""
+        cal = self.calibrations.get("temporal")
+        return None if cal is None else float(cal["offset_s"])
 
     def entry_T_OM_E0(self) -> np.ndarray | None:
         """The intra-oral entry pose ``T_OM_E0`` (4x4, m): ``[navigation] entry_T_OM_E0``,
@@ -491,7 +498,7 @@ def load_config(path: str | Path | None = None) -> DaemonConfig:
     cals: dict[str, Calibration] = {}
     if doc.calibration is not None:
         c = doc.calibration
-        for kind in (*NAVIGATION_CALIBRATIONS, "pivot"):
+        for kind in (*NAVIGATION_CALIBRATIONS, "pivot", "temporal"):
             ref = getattr(c, kind)
             if ref:
                 cals[kind] = load_file(path, f"calibration.{kind}", ref, partial(

@@ -65,6 +65,7 @@ from oralnav.daemon.schemas import (
     EstopBody,
     GuidePlanBody,
     NeedleCellBody,
+    TemporalCalibrationBody,
     NeedleStep,
     Problem,
     ProcedureAction,
@@ -140,6 +141,10 @@ class Operations(Protocol):
     def needle(self) -> dict[str, Any]: ...
     def needle_cell(self, trial: int, difficulty: float, who: str) -> dict[str, Any]: ...
     def needle_step(self, step: str, who: str) -> dict[str, Any]: ...
+    # temporal calibration (docs/calibration.md "Temporal calibration"): start returns the
+    # run's report at once (StateError -> 409); the report gives the phase and the result
+    def start_temporal(self, body: TemporalCalibrationBody, who: str) -> dict[str, Any]: ...
+    def temporal(self, samples: bool = False) -> dict[str, Any]: ...
 
 
 # -- helpers -----------------------------------------------------------------------------
@@ -443,6 +448,23 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
               summary="End guidance (HOLD) and clear the plan")
     async def post_guide_stop(request: Request, who: Operator) -> JSONResponse:
         return await command(request, who, "guide stop", lambda: ops.stop_guide(who.name))
+
+    @app.get("/calibration/temporal", responses={**_READ_ERRORS, **_answers(
+                 _422=(ValidationProblem, "the query does not validate (samples: a "
+                                          "boolean)"))},
+             summary="The temporal calibration's phase, progress and result "
+                     "(samples=true: the record too)")
+    async def get_temporal(_: Observer, samples: bool = False) -> JSONResponse:
+        return read(lambda: ops.temporal(samples))
+
+    @app.post("/calibration/temporal", responses=_COMMAND_ERRORS,
+              summary="Move the arm through the temporal calibration's excitation and fit "
+                      "the stereo camera's time offset (409 unless READY with the robot "
+                      "marker in view)")
+    async def post_temporal(request: Request, who: Operator,
+                            body: TemporalCalibrationBody) -> JSONResponse:
+        return await command(request, who, "temporal calibration",
+                             lambda: ops.start_temporal(body, who.name))
 
     @app.get("/needle", responses=_READ_ERRORS,
              summary="The needle cell, the procedure's next step and results")

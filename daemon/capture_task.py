@@ -49,7 +49,7 @@ from oralnav.drivers.camera.stereo import StereoCamera
 from oralnav.drivers.errors import ClockError, DriverError
 
 __all__ = ["FIELD_FRAMES", "CapturePipeline", "Source", "TrackedRound", "hardware_sources",
-           "sim_sources"]
+           "sim_sources", "stereo_offset"]
 
 log = logging.getLogger(__name__)
 
@@ -64,12 +64,15 @@ START_RETRY_S = (1.0, 10.0)
 @dataclass(frozen=True)
 class View:
     """One tracker of a source: the rig it tracks (its cameras are the rig's names), the
-    reference frame its poses are published in (``"C"`` stereo, ``"En"`` endoscope), and
-    the published suffix of each field it tracks (field name -> ``RM``/``OM``/``EM``)."""
+    reference frame its poses are published in (``"C"`` stereo, ``"En"`` endoscope), the
+    published suffix of each field it tracks (field name -> ``RM``/``OM``/``EM``), and how
+    late its cameras' timestamps are against the arm's clock (s, the temporal calibration;
+    subtracted from every stamp it publishes)."""
 
     tracker: Tracker
     frame: str
     suffixes: Mapping[str, str]
+    time_offset: float = 0.0
 
     def pose_names(self) -> set[str]:
         return {f"T_{self.frame}_{s}" for s in self.suffixes.values()}
@@ -98,17 +101,33 @@ class TrackedRound:
 
 
 def _view(rig: Rig, fields: Sequence[MarkerField], frame: str,
-          suffixes: Mapping[str, str]) -> View:
+          suffixes: Mapping[str, str], time_offset: float = 0.0) -> View:
     tracked = [f for f in fields if f.name in suffixes]
     return View(Tracker(rig, tracked, method="nvgba", mode="predict"), frame,
-                {f.name: suffixes[f.name] for f in tracked})
+                {f.name: suffixes[f.name] for f in tracked}, time_offset)
 
 
-def hardware_sources(cfg: DaemonConfig) -> list[Source]:
+def stereo_offset(cfg: DaemonConfig) -> float:
+    """The stereo camera's time offset (s) the daemon applies: the temporal calibration's,
+    or 0 with a warning when the configuration names none (docs/calibration.md,
+    "Temporal calibration": why a missing one is a warning, not a refusal)."""
+    offset = cfg.stereo_time_offset()
+    if offset is None:
+        log.warning("no temporal calibration ([calibration] temporal): the stereo camera's "
+                    "timestamps are taken as on the arm's clock (offset 0); run "
+                    "oralnav calibrate temporal")
+        return 0.0
+    log.info("stereo camera timestamps corrected by the temporal calibration: %+.2f ms",
+             offset * 1e3)
+    return offset
+
+
+def hardware_sources(cfg: DaemonConfig, stereo_offset: float = 0.0) -> list[Source]:
     """The configured cameras (``[cameras.<name>]``) as sources: the stereo pair, and each
     endoscope camera of ``[cell] endoscope_rig`` that tracks the effector field. A stereo
     camera without its partner is not read (logged). The cameras are built in the tasks;
-    their options were checked when the configuration loaded."""
+    their options were checked when the configuration loaded. ``stereo_offset``: how late
+    the stereo pair's stamps are (s; :func:`stereo_offset` reads it from the configuration)."""
     s = cfg.settings
 
     def camera(name: str) -> Camera:
@@ -124,7 +143,7 @@ def hardware_sources(cfg: DaemonConfig) -> list[Source]:
         names -= {left, right}
         sources.append(Source("stereo", lambda: StereoCamera(
             camera(left), camera(right), by=s.stereo.by, tolerance=s.stereo.tolerance,
-            clock=s.stereo.clock), [_view(cfg.rig, fields, "C", suffixes)]))
+            clock=s.stereo.clock), [_view(cfg.rig, fields, "C", suffixes, stereo_offset)]))
     endo = cfg.endoscope_rig
     if endo is not None and "effector" in cfg.fields:
         for name in sorted(names & set(endo.names)):
@@ -137,16 +156,17 @@ def hardware_sources(cfg: DaemonConfig) -> list[Source]:
 
 
 def sim_sources(cell: FrameSource, stereo: Rig, endoscope: Rig,
-                fields: Mapping[str, MarkerField]) -> list[Source]:
+                fields: Mapping[str, MarkerField], stereo_offset: float = 0.0
+                ) -> list[Source]:
     """The simulated cell as one source: its renderer shows the stereo pair and the
     endoscope at one instant. ``fields``: role (``robot``, ``opener``, ``effector``) ->
-    the cell's marker field."""
+    the cell's marker field; ``stereo_offset``: the stereo view's time offset (s)."""
     names = tuple(stereo.names) + tuple(endoscope.names)
     sizes = {n: tuple(rig[n].size) for rig in (stereo, endoscope) for n in rig.names}
     suffixes = {f.name: FIELD_FRAMES[role] for role, f in fields.items()}
     effector = fields["effector"].name
     return [Source("cell", lambda: SimCameraSet(names, cell, sizes=sizes), [
-        _view(stereo, list(fields.values()), "C", suffixes),
+        _view(stereo, list(fields.values()), "C", suffixes, stereo_offset),
         _view(endoscope, [fields["effector"]], "En", {effector: "EM"})])]
 
 
@@ -274,7 +294,7 @@ def _track(views: Sequence[View], frames: Mapping[str, Any]
         mine = {n: f for n, f in frames.items() if n in view.tracker.rig.names}
         if not mine:
             continue
-        stamp = sum(f.timestamp for f in mine.values()) / len(mine)
+        stamp = sum(f.timestamp for f in mine.values()) / len(mine) - view.time_offset
         out.append((view, stamp, view.tracker.track({n: f.image for n, f in mine.items()})))
     return out
 

@@ -96,6 +96,12 @@ class DaemonCore:
         #: what must hold for a procedure to start: each says why not ("" when it may);
         #: the service adds the navigation's (no calibration, no cameras, ...)
         self.start_checks: list[Callable[[], str]] = []
+        #: what RUNNING runs: ``"procedure"`` (the navigation steers) or ``"temporal
+        #: calibration"`` (``daemon/temporal_session.py`` moves the arm); set on each start
+        self.activity: str | None = None
+        #: the temporal calibration (``TemporalSession``) when the service built one; each
+        #: supervision tick drives its excitation
+        self.temporal_session: Any = None
 
     # -- the latched stop's handler (sync, never blocks) ---------------------------------
     def _stop_robot(self, record: Any) -> None:
@@ -169,6 +175,8 @@ class DaemonCore:
         else:
             sup.mark_not_ready(now, problem)
         self.guide_session.tick(now, st)
+        if self.temporal_session is not None:
+            self.temporal_session.tick(now)
 
     def _health(self, st: np.void | None, now: float) -> str | None:
         if st is None or not self.control.alive:
@@ -334,7 +342,12 @@ class DaemonCore:
                 why = check()
                 if why:  # never RUNNING with nothing that would move the robot
                     raise StateError(why)
-            sup.start(now, who)
+            before, self.activity = self.activity, "procedure"
+            try:
+                sup.start(now, who)
+            except StateError:
+                self.activity = before
+                raise
         elif action == "pause":
             sup.pause(now, who)
             self.hold()
@@ -460,6 +473,24 @@ class DaemonCore:
         if self.guide_session.running:
             return "a guided insertion is running"
         return ""
+
+    # -- temporal calibration (daemon/temporal_session.py) ------------------------------
+    def start_temporal(self, body: Any, who: str) -> dict[str, Any]:
+        """Start the temporal calibration's excitation (``TemporalCalibrationBody``);
+        StateError when refused or when this cell has none."""
+        from oralnav.daemon.temporal_session import Excitation
+
+        if self.temporal_session is None:
+            raise StateError("cannot calibrate time: this daemon has no capture pipeline")
+        plan = Excitation(amplitude=body.amplitude_mm * 1e-3, period=body.period_s,
+                          duration=body.duration_s, search=body.search_ms * 1e-3)
+        return jsonable(self.temporal_session.start(who, plan))
+
+    def temporal(self, samples: bool = False) -> dict[str, Any]:
+        """``GET /calibration/temporal``: the run's report (``TemporalSession.report``)."""
+        if self.temporal_session is None:
+            raise StateError("this daemon has no capture pipeline: no temporal calibration")
+        return jsonable(self.temporal_session.report(samples))
 
     def needle(self) -> dict[str, Any]:
         return jsonable(self.needle_session.status())

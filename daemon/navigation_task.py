@@ -147,6 +147,8 @@ class NavigationTask:
         """A listener of the capture pipeline: one navigation step when ``rnd`` carries
         the pose the current stage steers by and the procedure runs."""
         core = self.core
+        if core.activity not in (None, "procedure"):
+            return  # RUNNING moves the arm for something else (a temporal calibration)
         try:
             await self._step(rnd)
         finally:

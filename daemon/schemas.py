@@ -143,6 +143,18 @@ class NeedleCellBody(_Body):
     difficulty: Annotated[float, Field(ge=0.0, le=1.0)] = 1.0
 
 
+class TemporalCalibrationBody(_Body):
+    """``POST /calibration/temporal``: the arm's excitation (docs/calibration.md, "Temporal
+    calibration"): peak ``amplitude_mm`` (mm; the path is a 3-D Lissajous of it, its z
+    half of it), ``period_s`` (s, the slowest axis' period), ``duration_s`` (s, at least two
+    periods), and the offsets searched, ``+-search_ms`` (ms)."""
+
+    amplitude_mm: Annotated[Float, Field(gt=0.0, le=20.0)] = 5.0
+    period_s: Annotated[Float, Field(ge=1.0, le=20.0)] = 4.0
+    duration_s: Annotated[Float, Field(ge=2.0, le=120.0)] = 24.0
+    search_ms: Annotated[Float, Field(ge=10.0, le=500.0)] = 200.0
+
+
 # -- error answers, as the OpenAPI schema declares them -------------------------------------
 class Problem(BaseModel):
     """An error answer: ``detail`` says what was wrong, in words."""

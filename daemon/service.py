@@ -238,8 +238,14 @@ def build_navigation(cfg: DaemonConfig, core: DaemonCore) -> tuple[Any, Any, Any
     the configured cameras are the sources, and a hardware-in-the-loop cell's peers
     (``[cell] truth``) observe. The navigation's refusal guards ``POST /procedure/start``,
     and its hand-eye places the opener for guided insertion."""
-    from oralnav.daemon.capture_task import CapturePipeline, hardware_sources, sim_sources
+    from oralnav.daemon.capture_task import (
+        CapturePipeline,
+        hardware_sources,
+        sim_sources,
+        stereo_offset,
+    )
     from oralnav.daemon.navigation_task import NavigationTask, nav_calibration
+    from oralnav.daemon.temporal_session import ROBOT_POSE, TemporalSession
 
     s = cfg.settings
     observers: list[Callable[..., Any]] = []
@@ -254,10 +260,14 @@ def build_navigation(cfg: DaemonConfig, core: DaemonCore) -> tuple[Any, Any, Any
         cc = cfg.cell
         roles = {role: cell.config.stereo_scene.placement(getattr(cc, role)).field
                  for role in ("robot", "opener", "effector")}
-        sources = sim_sources(cell, cell.stereo_rig, cell.endoscope_rig, roles)
+        # the renderer stamps each frame with the arm's own instant: no offset unless a
+        # temporal calibration file says otherwise
+        offset = cfg.stereo_time_offset() or 0.0
+        sources = sim_sources(cell, cell.stereo_rig, cell.endoscope_rig, roles, offset)
         observers.append(SimTruth(cell))
     else:
-        sources = hardware_sources(cfg)
+        offset = stereo_offset(cfg)
+        sources = hardware_sources(cfg, offset)
     if s.cell.truth:  # a hardware-in-the-loop cell of protocol peers: they know the truth
         from oralnav.daemon.sim_cell import PeerTruth
 
@@ -278,6 +288,10 @@ def build_navigation(cfg: DaemonConfig, core: DaemonCore) -> tuple[Any, Any, Any
                          settings=s.navigation, tracked=capture.pose_names(),
                          progress=_log, observers=observers, no_calibration=why)
     capture.listeners.append(nav.on_tracked)
+    temporal = TemporalSession(core, applied_offset=offset,
+                               tracked=ROBOT_POSE in capture.pose_names())
+    capture.listeners.append(temporal.on_tracked)
+    core.temporal_session = temporal
     core.start_checks.append(nav.refusal)
     if calibration is not None:
         # guided insertion places the tracked opener in the base with the same hand-eye

@@ -5,6 +5,7 @@ deterministic and faster than real time."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 from oralnav.config.daemon import load_config
@@ -32,10 +33,14 @@ def _config():
 
 
 class Lockstep:
-    """The cell in lockstep; ``camera_every``: loop periods per camera frame."""
+    """The cell in lockstep; ``camera_every``: loop periods per camera frame;
+    ``latency_periods``: frames reach the pipeline that many periods after they were
+    rendered, stamped on arrival (a camera whose timestamps are late by that much, what
+    the temporal calibration measures); ``cfg``: another configuration than config/sim.toml."""
 
-    def __init__(self, camera_every: int = CAMERA_EVERY) -> None:
-        cfg = _config()
+    def __init__(self, camera_every: int = CAMERA_EVERY, latency_periods: int = 0,
+                 cfg=None) -> None:
+        cfg = cfg or _config()
         s = cfg.settings
         self.cfg = cfg
         self.clock = VirtualClock(100.0)
@@ -56,6 +61,8 @@ class Lockstep:
         self.cameras = self.source.make()
         self.k = 0
         self.camera_every = camera_every
+        self.latency_periods = latency_periods
+        self._late: list[tuple[int, dict]] = []   # (period of arrival, frames)
 
     async def start(self) -> None:
         import anyio
@@ -75,7 +82,14 @@ class Lockstep:
             self.control.step(self.clock.now(), lateness)
             self.k += 1
             if self.k % self.camera_every == 0 and not frozen():
-                await self.capture.process(self.source, await self.cameras.read())
+                self._late.append((self.k + self.latency_periods, await self.cameras.read()))
+            while self._late and self._late[0][0] <= self.k:
+                frames = self._late.pop(0)[1]
+                if self.latency_periods:
+                    now = self.clock.now()
+                    frames = {n: dataclasses.replace(f, timestamp=now)
+                              for n, f in frames.items()}
+                await self.capture.process(self.source, frames)
             if self.k % SUPERVISE_EVERY == 0:
                 self.core.supervise_once(self.clock.now())
             if until():

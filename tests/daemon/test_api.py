@@ -154,9 +154,26 @@ class FakeOps:
         return {"result": {"step": step, "ok": True}, "next": None}
 
 
+    # temporal calibration: refused unless IDLE (standing in for READY)
+    temporal_runs: list[dict] = []
+
+    def start_temporal(self, body: Any, who: str) -> dict[str, Any]:
+        if self.state != "IDLE":
+            raise StateError(f"cannot calibrate time in {self.state}")
+        self.calls.append(("start_temporal", body.model_dump(), who))
+        self.temporal_runs = [body.model_dump()]
+        return {"phase": "moving"}
+
+    def temporal(self, samples: bool = False) -> dict[str, Any]:
+        doc = {"phase": "moving" if self.temporal_runs else "idle", "result": None}
+        if samples:
+            doc["samples"] = {"t_cam": [], "p_C": [], "t_arm": [], "p_B": []}
+        return doc
+
+
 POSTS = ["/estop", "/reset", "/procedure/start", "/procedure/pause", "/procedure/resume",
          "/procedure/abort", "/targets", "/guide/plan", "/guide/start", "/guide/stop",
-         "/needle/cell", "/needle/NG", "/recover/effector"]
+         "/needle/cell", "/needle/NG", "/recover/effector", "/calibration/temporal"]
 GOOD_TARGETS = {"targets": [{"name": "s1", "p_OM": [0.01, 0.02, 0.0]},
                             {"name": "s2", "p_OM": [0.0, -0.01, 0.005], "n_OM": [0, 0, 2]}]}
 EYE4 = np.eye(4).tolist()
@@ -216,7 +233,7 @@ def audit_results(rig) -> list[dict]:
 
 def body_for(path: str) -> dict | None:
     return {"/targets": GOOD_TARGETS, "/guide/plan": GOOD_PLAN,
-            "/needle/cell": {"trial": 3}}.get(path)
+            "/needle/cell": {"trial": 3}, "/calibration/temporal": {}}.get(path)
 
 
 # -- roles -------------------------------------------------------------------------------
@@ -226,7 +243,8 @@ async def test_health_needs_no_token(client):
     assert r.status_code == 200 and r.json()["ok"] is True
 
 
-@pytest.mark.parametrize("path", ["/status", "/poses", "/targets", "/guide", "/needle"])
+@pytest.mark.parametrize("path", ["/status", "/poses", "/targets", "/guide", "/needle",
+                                  "/calibration/temporal"])
 async def test_reads_need_a_valid_token(client, rig, path):
     """issue 4 REST: GETs answer 401 with WWW-Authenticate: Bearer without a token or with
     an unknown one, and 200 for an observer."""
@@ -254,7 +272,7 @@ def test_every_post_route_is_covered(rig):
     posts = {r.path for r in rig.app.routes if "POST" in getattr(r, "methods", ())}
     assert posts == {"/estop", "/reset", "/procedure/{action}", "/targets", "/guide/plan",
                      "/guide/start", "/guide/stop", "/needle/cell", "/needle/{step}",
-                     "/recover/{device}"}
+                     "/recover/{device}", "/calibration/temporal"}
 
 
 @pytest.mark.parametrize("path", POSTS)
@@ -1008,3 +1026,28 @@ async def test_needle_cell_and_steps_over_rest(client, rig):
                              ("needle_step", "NG", "operator")]
     statuses = [(x["path"], x["status"]) for x in audit_lines(rig)]
     assert ("/needle/NR", 409) in statuses and ("/needle/XX", 422) in statuses
+
+
+async def test_temporal_calibration_endpoint(client, rig):
+    """issue 32, "Time": POST /calibration/temporal starts the excitation with the body's
+    figures (defaults where left out; out-of-range values 422 naming the field, nothing
+    called); GET reports the phase, with the record on ?samples=true; a refusal is 409."""
+    r = await client.post("/calibration/temporal", headers=rig.op, json={"amplitude_mm": 3})
+    assert r.status_code == 200 and r.json()["phase"] == "moving"
+    assert rig.ops.calls[-1] == ("start_temporal", {"amplitude_mm": 3.0, "period_s": 4.0,
+                                                    "duration_s": 24.0, "search_ms": 200.0},
+                                 "operator")
+    n = len(rig.ops.calls)
+    for bad in ({"amplitude_mm": 50}, {"period_s": 0.1}, {"duration_s": 1000},
+                {"amplitude_mm": "5"}, {"speed": 1}):
+        r = await client.post("/calibration/temporal", headers=rig.op, json=bad)
+        assert r.status_code == 422, bad
+        assert next(iter(bad)) in json.dumps(r.json()), r.json()
+    assert len(rig.ops.calls) == n
+    doc = (await client.get("/calibration/temporal", headers=rig.obs)).json()
+    assert doc["phase"] == "moving" and "samples" not in doc
+    doc = (await client.get("/calibration/temporal?samples=true", headers=rig.obs)).json()
+    assert set(doc["samples"]) == {"t_cam", "p_C", "t_arm", "p_B"}
+    rig.ops.state = "RUNNING"
+    r = await client.post("/calibration/temporal", headers=rig.op, json={})
+    assert r.status_code == 409 and "RUNNING" in r.json()["detail"]
