@@ -65,12 +65,12 @@ from oralnav.daemon.schemas import (
     EstopBody,
     GuidePlanBody,
     NeedleCellBody,
-    TemporalCalibrationBody,
     NeedleStep,
     Problem,
     ProcedureAction,
     SutureTarget,
     TargetsBody,
+    TemporalCalibrationBody,
     ValidationProblem,
     jsonable,
 )
