@@ -176,3 +176,43 @@ async def test_a_stop_mid_excitation_fails_the_run_and_leaves_nothing_to_resume(
         assert c.core.activity == "procedure"
     finally:
         await c.close()
+
+
+async def test_the_calibrated_offset_is_subtracted_from_the_stereo_stamps_only():
+    """With a temporal calibration of 10 ms the stereo poses are published 10 ms before
+    their frames' stamps; the endoscope's, which it does not calibrate, are not moved."""
+    c = Lockstep(cfg=_with_offset(0.010))
+    await c.start()
+    try:
+        await c.run(c.camera_every)
+        t = c.cell.truth()["time"]
+        assert c.core.pose("T_C_RM")["stamp"] == pytest.approx(t - 0.010, abs=1e-12)
+        assert c.core.pose("T_C_OM")["stamp"] == pytest.approx(t - 0.010, abs=1e-12)
+        en = c.core.pose("T_En_EM")
+        assert en is None or en["stamp"] == t
+        assert c.core.temporal_session.applied_offset == 0.010
+    finally:
+        await c.close()
+
+
+def test_the_configuration_names_the_offset_or_warns_and_takes_zero(tmp_path, caplog):
+    """[calibration] temporal loads a 'temporal' file (seconds, whatever its length unit)
+    and the stereo source applies it; without one the daemon warns, naming the command,
+    and takes 0: motion is bounded per frame (docs/calibration.md says why a missing
+    offset is no refusal)."""
+    from oralnav.config.calibration import save_calibration
+    from oralnav.config.daemon import load_config
+    from oralnav.daemon.capture_task import stereo_offset
+    from tests.daemon.test_navigation_task import _hardware_config
+
+    save_calibration(Calibration(kind="temporal", cell="c1", method="test",
+                                 values={"offset_s": 0.0234},
+                                 samples=SampleInfo(50, "0" * 64)), tmp_path / "t.toml")
+    text = (tmp_path / "t.toml").read_text().replace('length = "m"', 'length = "mm"')
+    (tmp_path / "t.toml").write_text(text)
+    cfg = load_config(_hardware_config(
+        tmp_path, f'[calibration]\ncell = "c1"\ntemporal = "{tmp_path / "t.toml"}"\n'))
+    assert stereo_offset(cfg) == 0.0234
+    with caplog.at_level("WARNING"):
+        assert stereo_offset(load_config(_hardware_config(tmp_path))) == 0.0
+    assert "oralnav calibrate temporal" in caplog.text
