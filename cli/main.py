@@ -536,8 +536,8 @@ def build_parser() -> argparse.ArgumentParser:
     pe.add_argument("--camera-latency", type=float, default=0.0,
                     help="s from a rendered frame's capture to its transfer (0..1)")
     pe.add_argument("--camera-clock-offset", type=float, default=0.0,
-                    help="s, the rendered cameras' clock minus this machine's monotonic "
-                         "clock")
+                    help="s, the error of the rendered cameras' PTP timestamps (positive: "
+                         "late), what oralnav calibrate temporal finds")
     pe.add_argument("--json", action="store_true", help="print one JSON object")
     pe.set_defaults(func=cmd_sim_peers)
 
@@ -646,7 +646,7 @@ def build_parser() -> argparse.ArgumentParser:
     hl.add_argument("--camera-latency", type=float, default=0.0,
                     help="s from a rendered frame's capture to its transfer (0..1)")
     hl.add_argument("--camera-clock-offset", type=float, default=0.0,
-                    help="s, the cameras' clock minus this machine's monotonic clock")
+                    help="s, the error of the cameras' PTP timestamps (positive: late)")
     hl.add_argument("--out", required=True, help="folder for hil.json and each run's log")
     hl.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     hl.set_defaults(func=cmd_bench_hil)

@@ -51,7 +51,9 @@ class HardwarePeers:
             pattern need Aravis, see docs/cameras.md).
         frame_rate: Hz of the cameras.
         camera_latency: s from a rendered frame's capture to its first packet.
-        camera_clock_offset: s, the rendered cameras' clock minus the host's monotonic.
+        camera_clock_offset: s, the error of the rendered cameras' timestamps: they are
+            PTP-synchronised to this host (TAI; the daemon reads them with ``timestamps =
+            "ptp"``) and stamp ``capture + camera_clock_offset``.
         cell: the cell file the rendered cameras show (default: the shipped example).
     """
 
@@ -93,6 +95,10 @@ class HardwarePeers:
 
                 cell_config = load_cell_config(self.cell_path)
                 ur_options["home"] = _pose6(cell_config.home_T_B_tcp)
+                # a CB3-series arm (125 Hz): the arm's path (the fake controller, the
+                # ur_rtde host, the control loop) then takes a quarter of the CPU that a
+                # 500 Hz e-Series takes, which the renderer needs on a 2-core machine
+                ur_options["series"] = "cb3"
             self.ur = self._stack.enter_context(
                 FakeURControllerProcess(self.ur_host, unlock_delay=0.5, **ur_options))
             self.drive = self._stack.enter_context(ModbusDriveServer())
@@ -116,7 +122,8 @@ class HardwarePeers:
         self.rendered = CellCameras(cell_config, self.ur.pose_matrix, wrist,
                                     frame_rate=self.frame_rate,
                                     latency_s=self.camera_latency,
-                                    clock_offset_s=self.camera_clock_offset)
+                                    clock_offset_s=self.camera_clock_offset,
+                                    ptp=True)
         try:
             self._stack.enter_context(self.rendered)
         except NoLoopbackAddress as exc:
@@ -206,7 +213,8 @@ watchdog_ms = 1000        # the drive's host watchdog, generous for the same rea
         root or LimitRTPRIO: normal scheduling, logged)."""
         if self.rendered is None:
             return ""
-        return "[control]\nrealtime_priority = 50    # the renderer shares these cores\n"
+        return ("[control]\nrealtime_priority = 50    # the renderer shares these cores\n"
+                "rate_hz = 125.0           # the fake controller is a CB3-series arm\n")
 
     def _ur_keys(self) -> str:
         """With rendered cameras the fake controller's process shares the cores with the
@@ -236,7 +244,9 @@ watchdog_ms = 1000        # the drive's host watchdog, generous for the same rea
             w, h = scene_rig[name][name].size
             text += (f'\n[cameras.{name}]\nbackend = "aravis"\ncamera_id = "{address}"\n'
                      f"region = [0, 0, {w}, {h}]\nframe_rate = {self.frame_rate}\n"
-                     "timeout = 3.0             # s: a render can be late on a busy machine\n")
+                     "timeout = 3.0             # s: a render can be late on a busy machine\n"
+                     'timestamps = "ptp"        # the cameras are PTP-synchronised to this '
+                     "host: a frame's stamp is its capture instant\n")
         # the cameras share one clock (as PTP-synchronised cameras do) and show one capture
         # of the cell: their device timestamps pair them whatever the transfer delays
         text += ('\n[stereo]\nby = "timestamp"\nclock = "device"\n'

@@ -13,7 +13,8 @@ from typing import Protocol, runtime_checkable
 
 from oralnav.checks import NumberMessages, finite_number
 
-__all__ = ["Clock", "DeviceClockMap", "VirtualClock", "WallClock"]
+__all__ = ["Clock", "DeviceClockMap", "PtpClockMap", "VirtualClock", "WallClock",
+           "tai_minus_monotonic"]
 
 # One wording for every refused time value; ValueError, as the clocks always raised.
 _SECONDS = NumberMessages.uniform("{what} must be a finite number of seconds, got {value!r}")
@@ -134,3 +135,65 @@ class DeviceClockMap:
         self.offset = min(allowed, seen)
         self._device, self._host = device, arrival
         return device + self.offset
+
+
+def tai_minus_monotonic() -> float:
+    """``CLOCK_TAI - CLOCK_MONOTONIC`` now (s), from the closest of three back-to-back
+    reads (the kernel keeps both; TAI is what IEEE 1588 (PTP) distributes)."""
+    best = None
+    for _ in range(3):
+        a = time.monotonic()
+        tai = time.clock_gettime(time.CLOCK_TAI)
+        b = time.monotonic()
+        if best is None or b - a < best[0]:
+            best = (b - a, tai - 0.5 * (a + b))
+    return best[1]
+
+
+class PtpClockMap:
+    """Maps a PTP-synchronised camera's timestamps (s of TAI, as GigE Vision 2.0 cameras
+    with IEEE 1588 enabled stamp frames) onto the host's monotonic clock with the host's
+    own ``TAI - monotonic`` (:func:`tai_minus_monotonic`): the capture instant itself, no
+    transfer delay in it, once the host's clock is synchronised to the same grandmaster.
+
+    A mapped instant after the frame's arrival (beyond ``ahead`` s) or older than
+    ``behind`` s at arrival means the clocks are not synchronised (PTP not running, a
+    camera on its own free-running clock), and an instant that goes back or stands still
+    means its clock was stepped: each raises :class:`~oralnav.drivers.errors.ClockError`,
+    never a frame placed wrongly. Pure arithmetic besides reading the host's clocks; not
+    thread-safe (one camera's reader)."""
+
+    def __init__(self, *, ahead: float = 0.005, behind: float = 10.0) -> None:
+        self.ahead = finite_number(ahead, "ahead", ValueError, messages=_SECONDS)
+        self.behind = finite_number(behind, "behind", ValueError, messages=_SECONDS)
+        if self.ahead < 0 or self.behind <= 0:
+            raise ValueError(f"ahead must be >= 0 and behind > 0 s, got {ahead!r}, {behind!r}")
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the last instant (a new link)."""
+        self._last: float | None = None
+
+    def map(self, device: float, arrival: float, tai_minus_mono: float | None = None
+            ) -> float:
+        """The monotonic instant (s) of PTP time ``device`` (s), for a frame that arrived
+        at monotonic ``arrival`` (s); ``tai_minus_mono``: the host's offset (read now when
+        None)."""
+        from .errors import ClockError
+
+        offset = tai_minus_monotonic() if tai_minus_mono is None else tai_minus_mono
+        t = device - offset
+        if t > arrival + self.ahead:
+            raise ClockError(f"the camera's PTP time is {(t - arrival) * 1e3:.1f} ms ahead of "
+                             "the frame's arrival: its clock is not synchronised to this "
+                             "computer's (is PTP running on both?)")
+        if t < arrival - self.behind:
+            raise ClockError(f"the camera's PTP time is {arrival - t:.1f} s behind the frame's "
+                             "arrival: its clock is not synchronised to this computer's")
+        if self._last is not None and t <= self._last:
+            back = self._last - t
+            self._last = None
+            raise ClockError(f"the camera's PTP time went back by {back * 1e3:.3f} ms (or "
+                             "stood still): its frames cannot be placed in time")
+        self._last = t
+        return t

@@ -47,6 +47,7 @@ from oralnav.realtime.control_loop import (
     ControlLoop,
     LoopSettings,
     run_at_rate,
+    tighten_timing,
     try_realtime,
 )
 from oralnav.realtime.plan_channel import ChannelError, PlanInbox, PlanSender, check_size, encode
@@ -190,7 +191,7 @@ def _child(spec: ProcessSpec, names: dict[str, str], ready: Any, plans: Any = No
         except OSError as exc:
             log.warning("cannot pin to CPU %s: %s", spec.cpu, exc)
     _warm_guidance()
-    sched = try_realtime(spec.realtime_priority)
+    sched = try_realtime(spec.realtime_priority) + "; " + tighten_timing()
     nav = SharedRecord(NAV_DTYPE, names["nav"])
     cmd = SharedRecord(CMD_DTYPE, names["cmd"])
     status = SharedRecord(STATUS_DTYPE, names["status"])

@@ -59,7 +59,7 @@ from gi.repository import Aravis, GLib  # noqa: E402  (needs require_version fir
 
 from oralnav.checks import NumberMessages, finite_number, positive_number  # noqa: E402
 
-from ..clock import DeviceClockMap  # noqa: E402
+from ..clock import DeviceClockMap, PtpClockMap  # noqa: E402
 from ..errors import (  # noqa: E402
     ClockError,
     DriverError,
@@ -385,8 +385,12 @@ class AravisCamera(Camera):
             arrived on this computer (default), or ``"device"``, the camera's own frame
             timestamp mapped onto ``time.monotonic()`` (:class:`~..clock.DeviceClockMap`):
             the capture instant plus the shortest transfer delay, free of each frame's
-            transfer jitter. A device clock that goes back or jumps is a
-            :class:`~..errors.ClockError` from ``read()``, never a frame placed wrongly.
+            transfer jitter; or ``"ptp"``, the camera's timestamp as PTP (IEEE 1588) time,
+            TAI, mapped with this computer's own clocks (:class:`~..clock.PtpClockMap`):
+            the capture instant itself, when both are synchronised to one grandmaster. A
+            device clock that goes back or jumps, or a PTP time that does not match the
+            arrival, is a :class:`~..errors.ClockError` from ``read()``, never a frame
+            placed wrongly.
 
     After ``start()``: ``device`` (the :class:`AravisDevice` opened), ``applied`` (the
     settings read back from the camera) and the counters ``delivered``, ``lost_frames``,
@@ -475,11 +479,11 @@ class AravisCamera(Camera):
             raise DriverInitError(f"{what}: reconnect_backoff must be (first, max) s with "
                                   f"0 < first <= max, got {reconnect_backoff!r}")
         self.reconnect_backoff = (lo, hi)
-        if timestamps not in ("arrival", "device"):
-            raise DriverInitError(f"{what}: timestamps must be 'arrival' or 'device', "
-                                  f"got {timestamps!r}")
+        if timestamps not in ("arrival", "device", "ptp"):
+            raise DriverInitError(f"{what}: timestamps must be 'arrival', 'device' or "
+                                  f"'ptp', got {timestamps!r}")
         self.timestamps = timestamps
-        self._clock_map = DeviceClockMap()
+        self._clock_map = PtpClockMap() if timestamps == "ptp" else DeviceClockMap()
 
         self._lock = threading.Lock()  # the SDK objects below
         self._life = LifecycleState()  # changed under _lock
@@ -683,7 +687,7 @@ class AravisCamera(Camera):
         stamp = raw.system_ns * 1e-9 - (time.time() - now)
         if not (now - 60.0 <= stamp <= now):  # the wall clock was stepped
             stamp = now
-        if self.timestamps == "device":
+        if self.timestamps in ("device", "ptp"):
             try:
                 stamp = self._clock_map.map(raw.device_ns * 1e-9, stamp)
             except ClockError as exc:

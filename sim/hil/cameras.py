@@ -52,20 +52,23 @@ class CellCameras:
         wrist_joints: the wrist's joints now ``[roll, pitch, yaw, jaw]`` (rad).
         frame_rate: Hz of every camera until a driver sets its own.
         latency_s: s from capture to the first packet (each camera).
-        clock_offset_s: the cameras' clock minus the host's monotonic clock, s.
+        clock_offset_s: the cameras' clock minus the host's monotonic clock, s (with
+            ``ptp``: the error of their PTP timestamps).
+        ptp: the cameras are PTP-synchronised to this host (their timestamps are TAI).
         keep: captures whose truth is kept.
     """
 
     def __init__(self, config: CellConfig, arm_pose: Callable[[], np.ndarray],
                  wrist_joints: Callable[[], np.ndarray], *, frame_rate: float = 5.0,
                  latency_s: float = 0.0, clock_offset_s: float = 0.0,
-                 keep: int = 512) -> None:
+                 ptp: bool = False, keep: int = 512) -> None:
         self._arm_pose = arm_pose
         self._T = np.eye(4)
         self.cell = SimCell(config, self._pose, wrist_joints, self._sample)
         self.names = self.cell.camera_names
         self.frame_rate, self.latency_s = float(frame_rate), float(latency_s)
         self.clock_offset_s = float(clock_offset_s)
+        self.ptp = bool(ptp)
         self._lock = threading.Lock()
         self._latest: _Capture | None = None
         self._truths: deque[tuple[float, dict[str, Any]]] = deque(maxlen=keep)
@@ -100,7 +103,7 @@ class CellCameras:
                 cam = RenderedGvCamera(lambda n=name: self._view(n), size=tuple(rig[name].size),
                                        latency_s=self.latency_s,
                                        clock_offset_s=self.clock_offset_s,
-                                       frame_rate=self.frame_rate)
+                                       frame_rate=self.frame_rate, ptp=self.ptp)
                 cam.start()
                 self.cameras[name] = cam
         except BaseException:

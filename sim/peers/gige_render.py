@@ -87,6 +87,8 @@ from typing import Any
 
 import numpy as np
 
+from oralnav.drivers.clock import tai_minus_monotonic
+
 from oralnav.sim.errors import SimError
 from oralnav.sim.peers.gige_fake import loopback_address
 
@@ -280,6 +282,9 @@ class RenderedGvCamera:
             no frame leaves before ``capture + latency_s``; 0..1.
         clock_offset_s: the camera clock minus the host's ``time.monotonic()``, s: a frame's
             device timestamp is ``capture + clock_offset_s`` (ns in the GVSP leader).
+        ptp: the camera's clock is PTP-synchronised to this host's, so its timestamps are
+            TAI: ``capture + clock_offset_s + (CLOCK_TAI - CLOCK_MONOTONIC)`` (the offset
+            is then the error of the camera's PTP timestamps).
         frame_rate: Hz, the camera's frame rate until a driver sets one (0.1..1000);
             default: the simulator's, 25 Hz.
 
@@ -296,7 +301,8 @@ class RenderedGvCamera:
     def __init__(self, source: Callable[[], tuple[np.ndarray, float]], *,
                  address: str | None = None, serial: str | None = None,
                  size: tuple[int, int] = (1920, 1200), latency_s: float = 0.0,
-                 clock_offset_s: float = 0.0, frame_rate: float | None = None) -> None:
+                 clock_offset_s: float = 0.0, frame_rate: float | None = None,
+                 ptp: bool = False) -> None:
         if not callable(source):
             raise CameraSettingsError(f"source must be a callable returning (image, capture), "
                                       f"got {source!r}")
@@ -335,6 +341,7 @@ class RenderedGvCamera:
         self.size = (int(size[0]), int(size[1]))
         self.latency_s = latency
         self.clock_offset_s = offset
+        self.ptp = bool(ptp)
         self.frame_rate = frame_rate
         self._address = address
 
@@ -622,7 +629,10 @@ class RenderedGvCamera:
         if capture <= self._last_capture:
             raise FrameError(f"camera {self.serial}: capture {capture:.6f} s is not after the "
                              f"previous frame's {self._last_capture:.6f} s")
-        device_ns = round((capture + self.clock_offset_s) * 1e9)
+        device = capture + self.clock_offset_s
+        if self.ptp:  # a camera synchronised to this host by PTP stamps TAI
+            device += tai_minus_monotonic()
+        device_ns = round(device * 1e9)
         if not 0 <= device_ns < 2**64:
             raise FrameError(f"camera {self.serial}: capture + clock_offset_s = "
                              f"{capture + self.clock_offset_s:.6f} s is not a valid camera "

@@ -121,3 +121,35 @@ def test_device_clock_map_refuses_bad_settings():
         DeviceClockMap(drift=-1.0)
     with pytest.raises(ValueError, match="jump"):
         DeviceClockMap(jump=math.nan)
+
+
+def test_ptp_time_maps_to_the_capture_instant_on_the_monotonic_clock():
+    """issue 32, "Time": a PTP-synchronised camera's TAI stamp maps onto time.monotonic()
+    through the host's own TAI - monotonic difference: the capture instant itself, without
+    the transfer delay (checked against the host's clocks read now)."""
+    from oralnav.drivers.clock import PtpClockMap, tai_minus_monotonic
+
+    off = tai_minus_monotonic()
+    now = time.monotonic()
+    assert abs((time.clock_gettime(time.CLOCK_TAI) - now) - off) < 1e-3
+    m = PtpClockMap()
+    capture = now - 0.4
+    assert m.map(capture + off, arrival=now, tai_minus_mono=off) == pytest.approx(capture)
+    assert m.map(capture + 0.1 + off, arrival=now) == pytest.approx(capture + 0.1, abs=1e-4)
+
+
+@pytest.mark.parametrize(("device", "words"), [
+    (0.5, "ahead of the frame's arrival"),     # stamped after it arrived: not synchronised
+    (-30.0, "behind the frame's arrival"),     # a free-running camera clock
+    (-0.2, "went back"),                       # stepped back after the first frame
+])
+def test_ptp_clock_errors_are_named(device, words):
+    """A PTP time that cannot be the capture instant is a ClockError naming why: after the
+    frame's arrival, far older than it, or going back; never a frame placed wrongly."""
+    from oralnav.drivers.clock import PtpClockMap
+    from oralnav.drivers.errors import ClockError
+
+    m = PtpClockMap()
+    m.map(99.9, arrival=100.0, tai_minus_mono=0.0)
+    with pytest.raises(ClockError, match=words):
+        m.map(100.0 + device if device != -0.2 else 99.7, arrival=100.05, tai_minus_mono=0.0)

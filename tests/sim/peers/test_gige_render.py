@@ -165,6 +165,23 @@ async def test_frames_are_the_rendered_images_with_their_capture_time():
 
 
 @needs_aravis
+async def test_ptp_stamps_read_back_as_the_capture_instant_plus_the_offset():
+    """issue 32, "Time": a camera PTP-synchronised to this host (``ptp=True``) stamps TAI;
+    the driver with ``timestamps="ptp"`` reads each frame back at its capture instant on
+    time.monotonic() plus the camera's timestamp error (``clock_offset_s``), within 1 ms
+    (the host reads two clocks), whatever the 30 ms between capture and sending."""
+    source = RandomFrames()
+    offset = 0.025
+    with rendered(source, clock_offset_s=offset, latency_s=0.03, ptp=True) as camera:
+        async with driver(camera, timestamps="ptp") as cam:
+            frames = [await cam.read() for _ in range(6)]
+    for frame in frames:
+        capture, image = source.find(frame.timestamp - offset)
+        assert abs(frame.timestamp - (capture + offset)) < 1e-3
+        np.testing.assert_array_equal(frame.image, image)
+
+
+@needs_aravis
 async def test_no_frame_arrives_before_capture_plus_latency():
     """With latency_s=0.03 each frame's host timestamp (arrival, on time.monotonic()) is at
     least 30 ms after its capture, and not much more: the frame goes out when due."""
