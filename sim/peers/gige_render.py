@@ -88,7 +88,6 @@ from typing import Any
 import numpy as np
 
 from oralnav.drivers.clock import tai_minus_monotonic
-
 from oralnav.sim.errors import SimError
 from oralnav.sim.peers.gige_fake import loopback_address
 
