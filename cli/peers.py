@@ -119,7 +119,7 @@ class HardwarePeers:
         from oralnav.sim.peers.gige_fake import NoLoopbackAddress
 
         wrist = _WristReader(self.drive)
-        self.rendered = CellCameras(cell_config, self.ur.pose_matrix, wrist,
+        self.rendered = CellCameras(cell_config, self.ur.pose_sample, wrist,
                                     frame_rate=self.frame_rate,
                                     latency_s=self.camera_latency,
                                     clock_offset_s=self.camera_clock_offset,

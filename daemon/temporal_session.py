@@ -103,7 +103,9 @@ class TemporalSession:
         if core.guide_session.running:
             return "cannot calibrate time: a guided insertion is running"
         rec = core.pose(ROBOT_POSE)
-        limit = core.watchdogs.stale_pose
+        # in view: a pose newer than the lost-pose limit (the excitation is open loop, so
+        # a slow camera's older poses still record the motion)
+        limit = core.watchdogs.poses.limit
         if rec is None or core.clock() - rec["stamp"] > limit:
             return (f"cannot calibrate time: the robot marker ({ROBOT_POSE}) is not in view "
                     f"(no pose within {limit:g} s)")

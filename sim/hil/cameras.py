@@ -10,8 +10,11 @@ the cell (one arm pose, one instant) and the others take their view of that same
 as cameras on a shared trigger would. Each capture's ground truth is kept
 (:meth:`CellCameras.truth_at`) for the truth service.
 
-The capture instant is the midpoint of reading the arm pose (an RPC to the controller's
-process, about a millisecond): the pose the frame shows is the arm's at that instant.
+The capture instant is the instant the arm pose describes: the host's clock at the
+controller cycle that computed it (``arm_sample``), the instant the arm's own RTDE package
+for that pose goes out. (Stamping the moment of reading instead would make every frame up
+to one controller period late: 4 ms on average on a 125 Hz CB3, which a temporal
+calibration would measure as camera delay.)
 """
 
 from __future__ import annotations
@@ -48,7 +51,8 @@ class CellCameras:
 
     Args:
         config: the cell (its scenes name the rigs, fields and imaging).
-        arm_pose: the arm's ``T_B_tcp`` now (4x4, m), read from its peer.
+        arm_sample: the arm's newest ``T_B_tcp`` (4x4, m) and the instant it describes
+            (s, ``time.monotonic()``), read from its peer.
         wrist_joints: the wrist's joints now ``[roll, pitch, yaw, jaw]`` (rad).
         frame_rate: Hz of every camera until a driver sets its own.
         latency_s: s from capture to the first packet (each camera).
@@ -58,11 +62,12 @@ class CellCameras:
         keep: captures whose truth is kept.
     """
 
-    def __init__(self, config: CellConfig, arm_pose: Callable[[], np.ndarray],
+    def __init__(self, config: CellConfig,
+                 arm_sample: Callable[[], tuple[np.ndarray, float]],
                  wrist_joints: Callable[[], np.ndarray], *, frame_rate: float = 5.0,
                  latency_s: float = 0.0, clock_offset_s: float = 0.0,
                  ptp: bool = False, keep: int = 512) -> None:
-        self._arm_pose = arm_pose
+        self._arm_sample = arm_sample
         self._T = np.eye(4)
         self.cell = SimCell(config, self._pose, wrist_joints, self._sample)
         self.names = self.cell.camera_names
@@ -79,10 +84,10 @@ class CellCameras:
     # -- the arm pose of one capture ------------------------------------------------------
     def _sample(self) -> float:
         """The cell's clock, read first at each capture: reads the arm pose and returns
-        the instant it describes (the midpoint of the read)."""
-        t0 = time.monotonic()
-        self._T = np.array(self._arm_pose(), dtype=float)
-        return 0.5 * (t0 + time.monotonic())
+        the instant it describes."""
+        T, t = self._arm_sample()
+        self._T = np.array(T, dtype=float)
+        return float(t)
 
     def _pose(self) -> np.ndarray:
         return self._T

@@ -23,6 +23,7 @@ import queue
 import selectors
 import socket
 import threading
+import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -111,6 +112,7 @@ class FakeURController(ServerLoop, RTDEOutputs, ControlScript, DashboardServer, 
         self._frozen = False
         # Controller state.
         self._tick = 0
+        self._state_host = time.monotonic()
         self._overruns = 0
         self._robot_mode = RobotMode.RUNNING
         self._safety_mode = SafetyMode.NORMAL
@@ -179,6 +181,9 @@ class FakeURController(ServerLoop, RTDEOutputs, ControlScript, DashboardServer, 
         steps = min(n, MAX_SUBSTEPS)
         for _ in range(steps):
             self._tcp.step(n * self.period / steps)
+        # this machine's clock when the state was computed, the instant its output
+        # package describes: what a renderer drawing this pose stamps its capture with
+        self._state_host = time.monotonic()
         if self._frozen:
             return
         values = self._outputs()
@@ -227,6 +232,17 @@ class FakeURController(ServerLoop, RTDEOutputs, ControlScript, DashboardServer, 
             T[:3, :3] = self._tcp.R.as_matrix()
             T[:3, 3] = self._tcp.p
             return T
+
+    def pose_sample(self) -> tuple[np.ndarray, float]:
+        """The TCP pose as a 4x4 ``T_B_tcp`` and the instant it describes: this machine's
+        ``time.monotonic()`` (s) at the cycle that computed it, the instant its RTDE
+        package goes out. A camera simulator that draws the pose stamps its capture with
+        it (the newest cycle is up to one period, 8 ms on a CB3, older than the call)."""
+        with self._lock:
+            T = np.eye(4)
+            T[:3, :3] = self._tcp.R.as_matrix()
+            T[:3, 3] = self._tcp.p
+            return T, self._state_host
 
     def tcp_speed(self) -> np.ndarray:
         """The TCP twist ``[vx, vy, vz, wx, wy, wz]`` (m/s, rad/s)."""
