@@ -131,14 +131,14 @@ async def test_refused_unless_ready_with_the_robot_marker_in_view():
     try:
         with pytest.raises(StateError, match="READY"):
             c.core.start_temporal(QUICK, "test")
+        await c.run(2 * SUPERVISE_EVERY, frozen=lambda: True)  # READY, no frame seen yet
+        assert c.core.supervisor.state.value == "READY"
+        with pytest.raises(StateError, match="robot marker"):
+            c.core.start_temporal(QUICK, "test")
         await _ready(c)
         with pytest.raises(StateError, match="two periods|2 periods"):
             c.core.start_temporal(TemporalCalibrationBody(period_s=4.0, duration_s=6.0),
                                   "test")
-        await c.run(int(1.5 / c.period), frozen=lambda: True)  # no frames for 1.5 s
-        c.core.supervise_once(c.clock.now())
-        with pytest.raises(StateError, match="robot marker"):
-            c.core.start_temporal(QUICK, "test")
         assert c.core.temporal()["phase"] == "idle"
         assert int(c.control.read_status()["motion_commands"]) == 0
     finally:
