@@ -255,7 +255,9 @@ class DaemonCore:
         if self.audit is not None:
             audit = {"path": str(self.audit.path), "incomplete": self.audit.incomplete,
                      "pending": self.audit.pending}
+        moving = self.supervisor.state in (SafetyState.RUNNING, SafetyState.PAUSED)
         return jsonable({"safety": sup, "control_loop": loop, "inputs": inputs,
+                         "activity": self.activity if moving else None,
                          "audit": audit, "latency_ms": self.latency_ms(),
                          "rates_hz": rates,
                          "uptime_s": self.clock() - self._started,

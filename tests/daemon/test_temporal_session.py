@@ -48,6 +48,7 @@ async def test_recovers_an_injected_camera_offset_within_a_millisecond():
         assert doc["phase"] == "moving"
         assert c.core.supervisor.state.value == "RUNNING"
         assert c.core.status()["safety"]["state"] == "RUNNING"
+        assert c.core.status()["activity"] == "temporal calibration"
         s = c.core.temporal_session
         await c.run(int(6.5 / c.period), until=lambda: s.phase != "moving")
         s.wait(30)
@@ -60,6 +61,7 @@ async def test_recovers_an_injected_camera_offset_within_a_millisecond():
         assert len(rep["samples"]["t_cam"]) == rep["frames"]
         assert rep["arm_samples"] > 5.0 / c.period  # the whole run, beyond the ring's 4 s
         assert c.core.supervisor.state.value == "READY"
+        assert c.core.status()["activity"] is None
         assert c.nav.navigator is None
         moved = np.ptp(np.array(rep["samples"]["p_B"]), axis=0)
         assert 4e-3 < moved.max() < 9e-3  # the excitation's +-4 mm, no more
