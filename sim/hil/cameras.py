@@ -27,13 +27,18 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
+import cv2
 import numpy as np
 
 from oralnav.sim.errors import SimError
 from oralnav.sim.peers.gige_render import RenderedGvCamera
 from oralnav.sim.world.cell import CellConfig, SimCell
 
-__all__ = ["CellCameras"]
+__all__ = ["STAMP_TOLERANCE_S", "CellCameras"]
+
+#: s: how far a frame's stamp, read back from the cameras' timestamps, may lie from its
+#: capture instant (two host clocks read at render and at arrival: microseconds)
+STAMP_TOLERANCE_S = 1e-3
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +101,11 @@ class CellCameras:
     def start(self) -> None:
         """Build the renderer's maps, render one capture (the cameras' first frame must
         not wait on the renderer's set-up) and start a camera per view."""
+        # OpenCV's parallel loops wait for every one of their threads; on cores shared
+        # with the daemon one descheduled worker holds a whole render up (a capture took
+        # 1.2-2 s on 2 cores, 0.33 s at the median single-threaded). This is the peers'
+        # process: the setting is theirs alone.
+        cv2.setNumThreads(1)
         self.cell.prepare()
         self._view(self.names[0])
         # the warm-up capture is never sent: a camera's first frame must be fresh (a
@@ -148,9 +158,10 @@ class CellCameras:
 
     # -- ground truth ---------------------------------------------------------------------
     def truth_at(self, t: float | None = None) -> dict[str, Any]:
-        """The truth of the newest capture at or before ``t`` (s, host monotonic; None:
-        the newest): ``time``, ``T_B_tcp``, ``T_B_E`` (4x4, m), ``q`` and
-        ``targets_B`` (name -> (3,) m). Raises :class:`SimError` when there is none."""
+        """The truth of the newest capture at or before ``t`` (s, host monotonic, give or
+        take :data:`STAMP_TOLERANCE_S`; None: the newest): ``time``, ``T_B_tcp``,
+        ``T_B_E`` (4x4, m), ``q`` and ``targets_B`` (name -> (3,) m). Raises
+        :class:`SimError` when there is none."""
         with self._lock:
             items = list(self._truths)
         if not items:
@@ -158,7 +169,10 @@ class CellCameras:
         if t is None:
             when, truth = items[-1]
         else:
-            i = bisect.bisect_right([w for w, _ in items], t)
+            # a frame's stamp comes back from the cameras' PTP time within microseconds
+            # of its capture, either side: the capture "at" t is the one within
+            # STAMP_TOLERANCE_S after it too, never the one before (a frame period earlier)
+            i = bisect.bisect_right([w for w, _ in items], t + STAMP_TOLERANCE_S)
             if i == 0:
                 raise SimError(f"no capture kept at or before {t:.6f} s (the oldest is "
                                f"{items[0][0]:.6f} s)")
