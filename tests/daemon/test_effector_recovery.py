@@ -24,8 +24,13 @@ WAIT = 5.0  # s: the drive's fault reset goes over Modbus from another process
 async def cell():
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     with ModbusDriveServer() as drive:
+        # the drive's host watchdog at 1 s, as the protocol-peer cell has it: at the
+        # driver's default 100 ms, a control process at normal scheduling on a loaded
+        # 2-core machine let it expire at start-up (0x8130 on every axis), which is not
+        # the fault this test injects
         proc = control_process(DriverSpec("modbus", {"host": "127.0.0.1", "port": drive.port,
-                                                     "silence_timeout": 0.2}),
+                                                     "silence_timeout": 0.2,
+                                                     "watchdog_ms": 1000}),
                                driver_silence=0.3)
         await proc.start()
         inputs = SimInputs()
