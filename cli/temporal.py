@@ -31,7 +31,8 @@ from oralnav.config.calibration import Calibration, SampleInfo, samples_digest, 
 from oralnav.config.loader import atomic_write_text
 from oralnav.control.calibration.temporal import estimate_time_offset
 
-__all__ = ["RecordError", "add_parser", "cmd_temporal", "read_record", "write_record"]
+__all__ = ["RecordError", "add_parser", "cmd_temporal", "read_record", "record_texts",
+           "write_record"]
 
 #: Seconds between two looks at the daemon's progress.
 POLL_S = 0.5
@@ -51,15 +52,22 @@ def _rows(values: list[list[float]]) -> str:
     return buf.getvalue()
 
 
-def write_record(folder: Path, samples: dict[str, Any], meta: dict[str, Any]) -> list[Path]:
-    """The daemon's record (``GET /calibration/temporal?samples=true``) as files in
-    ``folder`` (each written atomically); returns the sample files."""
-    folder.mkdir(parents=True, exist_ok=True)
+def record_texts(samples: dict[str, Any]) -> tuple[str, str]:
+    """The daemon's record (``GET /calibration/temporal?samples=true``) as the text of
+    ``frames.txt`` and ``arm.txt`` (a stamp and x y z per row); these bytes, in this
+    order, are what the calibration file's digest covers."""
     frames = [[t, *p] for t, p in zip(samples["t_cam"], samples["p_C"], strict=True)]
     arm = [[t, *p] for t, p in zip(samples["t_arm"], samples["p_B"], strict=True)]
+    return _rows(frames), _rows(arm)
+
+
+def write_record(folder: Path, texts: tuple[str, str], meta: dict[str, Any]) -> list[Path]:
+    """A record (:func:`record_texts`) and its ``record.json`` (``meta``) as files in
+    ``folder``, each written atomically; returns the sample files."""
+    folder.mkdir(parents=True, exist_ok=True)
     files = [folder / "frames.txt", folder / "arm.txt"]
-    atomic_write_text(files[0], _rows(frames))
-    atomic_write_text(files[1], _rows(arm))
+    for path, text in zip(files, texts, strict=True):
+        atomic_write_text(path, text)
     atomic_write_text(folder / "record.json", json.dumps(meta, indent=2) + "\n")
     return files
 
@@ -161,15 +169,11 @@ def cmd_temporal(args: argparse.Namespace) -> int:
         folder = Path(args.record) if args.record else None
         meta = {"applied_offset_s": doc["applied_offset_s"], "excitation": doc["excitation"],
                 "daemon": args.url}
+        texts = record_texts(doc["samples"])
         if folder is not None:
-            files = write_record(folder, doc["samples"], meta)
+            write_record(folder, texts, meta)
             _progress(f"wrote the record to {folder}")
-            raws = b"".join(f.read_bytes() for f in files)
-        else:
-            s = doc["samples"]
-            raws = (_rows([[t, *p] for t, p in zip(s["t_cam"], s["p_C"], strict=True)])
-                    + _rows([[t, *p] for t, p in zip(s["t_arm"], s["p_B"], strict=True)])
-                    ).encode()
+        raws = "".join(texts).encode()  # the files' bytes, in order, as read_record reads
         res = doc["result"]
         figures = {k: res[k] for k in ("offset_ms", "sigma_ms", "rms_mm", "frames",
                                        "rejected", "speed_rms_mm_s", "search_ms")}

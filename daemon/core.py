@@ -344,12 +344,7 @@ class DaemonCore:
                 why = check()
                 if why:  # never RUNNING with nothing that would move the robot
                     raise StateError(why)
-            before, self.activity = self.activity, "procedure"
-            try:
-                sup.start(now, who)
-            except StateError:
-                self.activity = before
-                raise
+            self.start_activity("procedure", now, who, "procedure started")
         elif action == "pause":
             sup.pause(now, who)
             self.hold()
@@ -360,6 +355,18 @@ class DaemonCore:
             self.hold()
         else:  # the API validates the action; this guards direct callers
             raise StateError(f"unknown procedure action {action!r}")
+
+    def start_activity(self, activity: str, now: float, who: str, reason: str) -> None:
+        """READY -> RUNNING for ``activity`` (``"procedure"``, ``"temporal calibration"``)
+        at ``now`` (s). The activity is named before the state changes, so a task that
+        steers one activity never sees RUNNING under another's name; a refused start
+        (StateError) leaves it as it was."""
+        before, self.activity = self.activity, activity
+        try:
+            self.supervisor.start(now, who, reason)
+        except StateError:
+            self.activity = before
+            raise
 
     def targets(self) -> list[SutureTarget]:
         with self._lock:

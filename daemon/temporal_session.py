@@ -131,13 +131,8 @@ class TemporalSession:
             self._near = self._opener_in_base()
             self._frames, self._arm_t, self._arm_p = [], [], []
             self._arm_last = -np.inf
-            before = core.activity
-            core.activity = ACTIVITY  # before RUNNING: the navigation must never steer it
-            try:
-                core.supervisor.start(now, who, "temporal calibration started")
-            except StateError:
-                core.activity = before
-                raise
+            # named before RUNNING: the navigation must never steer it
+            core.start_activity(ACTIVITY, now, who, "temporal calibration started")
             self.excitation, self.by, self.error, self.fit = plan, who, None, None
             self._t0 = now
             self.phase = "moving"

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from oralnav.cli import main as cli
-from oralnav.cli.temporal import write_record
+from oralnav.cli.temporal import record_texts, write_record
 from oralnav.config.calibration import load_calibration
 from oralnav.control.calibration.temporal import estimate_time_offset
 from tests.control.calibration.test_temporal import _record
@@ -117,7 +117,7 @@ def test_a_refusal_or_a_bad_record_writes_nothing(tmp_path, capsys):
                       "--out", str(out), "--cell", "c1"])
     assert rc == 2 and "409" in capsys.readouterr().err
     rec = tmp_path / "rec"
-    write_record(rec, _samples(0.01), {"applied_offset_s": 0.0})
+    write_record(rec, record_texts(_samples(0.01)), {"applied_offset_s": 0.0})
     (rec / "arm.txt").write_text("1 2 3\n4 5 6\n")
     rc = cli.run(["calibrate", "temporal", "--samples", str(rec), "--out", str(out),
                   "--cell", "c1"])

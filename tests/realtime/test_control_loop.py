@@ -386,9 +386,9 @@ def test_records_capture_to_command_latency_once_per_goal() -> None:
 
 def test_the_control_process_tightens_its_timing():
     """Deadline misses under load (issue 32, item 6): the control process shortens the GIL
-    switch interval (a driver's helper thread holding the GIL made the loop wait up to
-    5 ms, period after period) and sets its timer slack to 1 ns; run_at_rate keeps its
-    2 ms grid with a 50 us spin. Checked in a fresh interpreter, as the process sets it."""
+    switch interval (a driver's helper thread holding the GIL can make the loop wait up
+    to 5 ms) and sets its timer slack to 1 ns; run_at_rate keeps its 2 ms grid with a
+    50 us spin. Checked in a fresh interpreter, as the process sets it."""
     import subprocess
     import sys
 
