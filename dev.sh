@@ -2,7 +2,8 @@
 # One entry point for a fresh machine: each command creates (or reuses) the virtual
 # environment in .venv, installs the project and what it needs, then runs.
 #   ./dev.sh run     the main job: oralnavd on the embedded simulation default (--demo)
-#   ./dev.sh test    lint + the layer rules (import-linter) + the whole test suite (what CI runs)
+#   ./dev.sh test    lint + the layer rules (import-linter) + the whole test suite (what CI
+#                    runs), one pytest worker per core
 #   ./dev.sh bench   the benchmarks (long; writes bench/out/)
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -87,7 +88,9 @@ case "$cmd" in
         setup
         "$VENV/bin/ruff" check .
         "$VENV/bin/python" -m tests.layers
-        exec "$VENV/bin/python" -m pytest "$@"
+        # one pytest worker per core (pytest-xdist): the suite is mostly independent
+        # CPU-bound tests; ORALNAV_TEST_WORKERS=0 runs it in one process
+        exec "$VENV/bin/python" -m pytest -n "${ORALNAV_TEST_WORKERS:-auto}" "$@"
         ;;
     bench)
         setup

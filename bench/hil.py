@@ -6,9 +6,10 @@ UR controller, the Modbus drive unit, the serial e-stop box, the simulated cell'
 pair and endoscope as GigE cameras, its ground truth on loopback) and runs ``oralnavd
 --config DIR/cell.toml --demo --json`` on them ``runs`` times, each on fresh peers. Each
 run's record: passed (exit 0, every target reached), each target's TRE against the peers'
-truth, the capture-to-command latency (p50, p99), the slowest tracking rate, the duration
-and, for a failure, the demo's reason. It writes ``hil.json`` into DIR and each run's
-daemon log into ``DIR/run_<k>``; progress goes to stderr.
+truth, the capture-to-command latency (p50, p99) and its delivery and tracking stages,
+the slowest tracking rate, the duration and, for a failure, the demo's reason. It writes
+``hil.json`` into DIR and each run's daemon log into ``DIR/run_<k>``; progress goes to
+stderr.
 """
 
 from __future__ import annotations
@@ -67,6 +68,11 @@ def main(out: Path, make_peers: Callable[..., AbstractContextManager[Any]], runs
            "latency_p99_ms": max((r["latency_ms"]["p99"] for r in passed
                                   if (r.get("latency_ms") or {}).get("p99") is not None),
                                  default=None),
+           # where the latency goes (daemon/latency.py): capture to arrival, then tracking
+           **{f"{stage}_p99_ms": max((r["latency_ms"]["stages"][stage]["p99"] for r in passed
+                                      if stage in ((r.get("latency_ms") or {}).get("stages")
+                                                   or {})), default=None)
+              for stage in ("delivery", "tracking")},
            "tracking_hz_min": min((r["tracking_hz"] for r in passed
                                    if r.get("tracking_hz") is not None), default=None),
            "results": results}

@@ -253,6 +253,7 @@ class CapturePipeline:
         """One round: ``frames`` (``{camera: CameraFrame}``, one instant) tracked and
         published, then the listeners told. None when tracking failed (a FAULT)."""
         core, name = self.core, source.name
+        arrived = core.clock()
         for cam, f in frames.items():
             core.camera_frame(cam, f.counter)
         try:
@@ -263,7 +264,9 @@ class CapturePipeline:
                                   f"{type(exc).__name__}: {exc}")
             return None
         published: dict[str, float] = {}
+        now = core.clock()
         for view, stamp, ests in found:
+            core.stage_times.record(stamp, arrived, now)
             for fname, est in ests.items():
                 pose = f"T_{view.frame}_{view.suffixes.get(fname, fname)}"
                 core.publish_pose(pose, est.T_ref_field, stamp, frame=view.frame,

@@ -40,6 +40,7 @@ import numpy as np
 
 from oralnav.control.navigation.arm_trajectory import ArmTrajectory
 from oralnav.daemon.guide_session import GUIDE_POSE, GuideSession
+from oralnav.daemon.latency import StageTimes, percentiles_ms
 from oralnav.daemon.needle_session import NeedleSession
 from oralnav.daemon.poses import PoseStore
 from oralnav.daemon.schemas import ProcedureAction, SutureTarget, jsonable
@@ -74,6 +75,8 @@ class DaemonCore:
         self._targets: list[SutureTarget] = []
         #: the newest tracked poses, the tracking rates and which poses are watched
         self.pose_store = PoseStore(watchdogs, clock, pinned=self._pinned_poses)
+        #: each tracked round's capture, arrival and publication (``daemon/latency.py``)
+        self.stage_times = StageTimes()
         self._started = clock()
         #: what a running procedure reports (phase, progress), shown in /status
         self.procedure_info: dict[str, Any] = {}
@@ -267,14 +270,18 @@ class DaemonCore:
     def latency_ms(self) -> dict[str, Any] | None:
         """Capture-to-command latency over the last goals the loop servoed (up to 512):
         from a frame's capture instant to the first servo command computed from it, in
-        ms: ``{"n", "p50", "p99", "max"}``; None before the first."""
+        ms: ``{"n", "p50", "p99", "max"}`` (None each before the first goal), and
+        ``stages``: the tracked rounds' ``delivery`` and ``tracking`` parts
+        (``daemon/latency.py``). None before anything was tracked or servoed."""
         rec = getattr(self.control, "read_latency", None)
         lat = rec() if rec is not None else []
-        if len(lat) == 0:
+        whole = percentiles_ms(lat["t_command"] - lat["t_capture"]) if len(lat) else None
+        stages = self.stage_times.summary()
+        if whole is None and stages is None:
             return None
-        ms = (lat["t_command"] - lat["t_capture"]) * 1e3
-        return {"n": int(len(ms)), "p50": float(np.percentile(ms, 50)),
-                "p99": float(np.percentile(ms, 99)), "max": float(ms.max())}
+        out: dict[str, Any] = whole or {"n": 0, "p50": None, "p99": None, "max": None}
+        out["stages"] = stages
+        return out
 
     def poses(self) -> dict[str, Any]:
         now = self.clock()

@@ -89,14 +89,17 @@ async def play_operator(port: int, clear: dict[str, str],
 def demo_summary(result: dict[str, Any]) -> dict[str, Any]:
     """The main job's figures as ``--json`` prints them at the top level: ``targets``
     (name -> ``{"tre_mm"}``, None where no truth was measured), ``latency_ms`` (``p50``,
-    ``p99``: capture to command), ``tracking_hz`` (the slowest camera source's rate) and
+    ``p99``: capture to command; ``stages``: its ``delivery`` and ``tracking`` parts, each
+    ``p50`` and ``p99``), ``tracking_hz`` (the slowest camera source's rate) and
     ``final_state``."""
     tre = result.get("tre_mm", {})
     rates = [hz for name, hz in result.get("rates_hz", {}).items()
              if name.startswith("tracking")]
     lat = result.get("latency_ms") or {}
     return {"targets": {n: {"tre_mm": tre.get(n)} for n in result.get("targets", [])},
-            "latency_ms": {"p50": lat.get("p50"), "p99": lat.get("p99")},
+            "latency_ms": {"p50": lat.get("p50"), "p99": lat.get("p99"),
+                           "stages": {k: {"p50": v["p50"], "p99": v["p99"]}
+                                      for k, v in (lat.get("stages") or {}).items() if v}},
             "tracking_hz": min(rates) if rates else None,
             "final_state": result.get("state")}
 
@@ -121,10 +124,16 @@ def print_result(result: dict[str, Any], backend: str = "sim") -> None:
     print(f"  tracking (frames/s, rendered and tracked on this machine): {tracked or '-'}; "
           f"control loop {loop.get('periods', 0)} periods, p99 period error "
           f"{loop.get('period_error_p99_ms') or 0.0:.3f} ms")
-    lat = result.get("latency_ms")
-    if lat:
+    lat = result.get("latency_ms") or {}
+    if lat.get("p50") is not None:
+        camera = ("the simulated camera's rendering" if backend == "sim"
+                  else "the camera's delivery")
         print(f"  capture-to-command latency p50 {lat['p50']:.1f} ms, p99 {lat['p99']:.1f} ms "
-              f"over {lat['n']} goals (the simulated camera's rendering included)")
+              f"over {lat['n']} goals ({camera} included)")
+    for stage, v in (lat.get("stages") or {}).items():
+        if v:
+            print(f"    {stage:9s} p50 {v['p50']:.1f} ms, p99 {v['p99']:.1f} ms "
+                  f"over {v['n']} rounds")
     if not result.get("done"):
         if result.get("error"):
             print(f"  failed: {result['error']}")
