@@ -133,7 +133,7 @@ def print_result(result: dict[str, Any], backend: str = "sim") -> None:
     for stage, v in (lat.get("stages") or {}).items():
         if v:
             print(f"    {stage:9s} p50 {v['p50']:.1f} ms, p99 {v['p99']:.1f} ms "
-                  f"over {v['n']} rounds")
+                  f"over {v['n']} views")
     if not result.get("done"):
         if result.get("error"):
             print(f"  failed: {result['error']}")

@@ -4,7 +4,8 @@ were published.
 
 The control loop measures the whole latency (a goal's capture instant to the first servo
 command computed from it, ``realtime/control_loop.py``). This splits the part before the
-goal by stage, per round of a camera source:
+goal by stage, for each view of a tracked round (the stereo pair, the endoscope: each has
+its own capture instant):
 
 - ``delivery``: capture to the frames' arrival in the daemon's capture task (exposure,
   read-out, transfer, the driver's queue; on the hardware-in-the-loop cell also the
@@ -24,10 +25,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["STAGE_ROUNDS", "StageTimes", "percentiles_ms"]
+__all__ = ["STAGE_VIEWS", "StageTimes", "percentiles_ms"]
 
-#: Rounds kept (per daemon, every source together): about the loop's 512 goals.
-STAGE_ROUNDS = 512
+#: Views kept (per daemon, every source together): about the loop's 512 goals.
+STAGE_VIEWS = 512
 
 
 def percentiles_ms(seconds: np.ndarray) -> dict[str, Any] | None:
@@ -40,24 +41,24 @@ def percentiles_ms(seconds: np.ndarray) -> dict[str, Any] | None:
 
 
 class StageTimes:
-    """The last :data:`STAGE_ROUNDS` rounds' stage instants (module docstring); safe to
-    record from the capture tasks while the status reads."""
+    """The last :data:`STAGE_VIEWS` tracked views' stage instants (module docstring);
+    safe to record from the capture tasks while the status reads."""
 
-    def __init__(self, keep: int = STAGE_ROUNDS) -> None:
+    def __init__(self, keep: int = STAGE_VIEWS) -> None:
         self._lock = threading.Lock()
-        self._rounds: deque[tuple[float, float, float]] = deque(maxlen=keep)
+        self._views: deque[tuple[float, float, float]] = deque(maxlen=keep)
 
     def record(self, captured: float, arrived: float, published: float) -> None:
-        """One round: its capture instant, its frames' arrival in the capture task and
-        its poses' publication (s, daemon monotonic clock)."""
+        """One view of a round: its capture instant, its frames' arrival in the capture
+        task and its poses' publication (s, daemon monotonic clock)."""
         with self._lock:
-            self._rounds.append((float(captured), float(arrived), float(published)))
+            self._views.append((float(captured), float(arrived), float(published)))
 
     def summary(self) -> dict[str, Any] | None:
-        """``{"delivery": {...}, "tracking": {...}}``, each :func:`percentiles_ms`; None
-        before the first round."""
+        """``{"delivery": {...}, "tracking": {...}}``, each :func:`percentiles_ms` over
+        the views kept; None before the first."""
         with self._lock:
-            rounds = np.array(self._rounds, dtype=float).reshape(-1, 3)
+            rounds = np.array(self._views, dtype=float).reshape(-1, 3)
         if len(rounds) == 0:
             return None
         return {"delivery": percentiles_ms(rounds[:, 1] - rounds[:, 0]),

@@ -36,7 +36,7 @@ def test_text_report_prints_the_latency_and_where_it_went(capsys):
     print_result(RESULT, "hardware")
     out = capsys.readouterr().out
     assert "latency p50 120.0 ms, p99 180.0 ms over 40 goals (the camera's delivery" in out
-    assert "delivery  p50 60.0 ms, p99 90.0 ms over 50 rounds" in out
+    assert "delivery  p50 60.0 ms, p99 90.0 ms over 50 views" in out
     assert "tracking  p50 40.0 ms, p99 70.0 ms" in out
     no_goal = dict(RESULT, latency_ms={"n": 0, "p50": None, "p99": None, "max": None,
                                        "stages": RESULT["latency_ms"]["stages"]})
