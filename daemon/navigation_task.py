@@ -1,9 +1,10 @@
 """The two-stage navigation as a listener of the capture pipeline, the same on every cell.
 
-After each tracked round (``daemon/capture_task.py``) that carries the pose the current
-stage steers by (``T_C_RM`` while approaching, ``T_En_EM`` inside the mouth), and while the
-procedure runs, :class:`NavigationTask` turns the pose store's newest poses into the
-control loop's goal through the two-stage navigator (``control/navigation/navigator.py``).
+After each tracked round (``daemon/capture_task.py``) that completes a capture of the pose
+the current stage steers by (``T_C_RM`` while approaching, ``T_En_EM`` inside the mouth)
+and of the opener's (see "Pairing"), and while the procedure runs,
+:class:`NavigationTask` turns the pose store's newest poses into the control loop's goal
+through the two-stage navigator (``control/navigation/navigator.py``).
 It reads only the pose store, the arm's measured history (the control loop's), the
 configuration and the calibration files: no simulator object.
 
@@ -12,6 +13,13 @@ configuration and the calibration files: no simulator object.
   history (``control/navigation/arm_trajectory.py``). A frame the history cannot place
   (older than it, inside a gap, or not reported by the arm within ``ARM_WAIT_S``) is a
   FAULT naming why, never a pose chained across instants that do not match.
+- **Pairing.** Each capture of the pose the stage steers by makes one step, with the
+  opener pose of the same capture when another source tracks it (inside the mouth the
+  effector is seen by the endoscope, the opener by the stereo pair): a step waits for the
+  opener's round of that capture or later, one opener round at most. Stepping at once
+  on the opener of the previous capture would make the goal a frame period older (on the
+  hardware-in-the-loop cell the endoscope's single view is tracked before the stereo
+  pair's two, and such goals went past ``stale_pose`` under load: the arm held).
 - **Slow sight slows the robot.** The goal sent to the loop leads the arm's newest
   measured TCP by at most ``[navigation] max_step`` and ``max_turn_deg`` per tracked
   frame, so the arm moves at most that far on what one frame showed: slow tracking is
@@ -29,6 +37,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import anyio
 import numpy as np
@@ -54,6 +63,11 @@ STEERING_POSES = {"approach": {"T_C_RM", "T_C_OM"}, "adjust": {"T_C_OM", "T_En_E
                   "targets": {"T_C_OM", "T_En_EM"}}
 #: The pose whose fresh capture makes a navigation step, by stage (the one that moves).
 MOVING_POSE = {"approach": "T_C_RM", "adjust": "T_En_EM", "targets": "T_En_EM"}
+#: The opener's pose: every stage's goal is in its frame (the head is taken as still).
+OPENER_POSE = "T_C_OM"
+#: s: two poses this close in capture instant are of one capture (cameras on a shared
+#: trigger are stamped microseconds apart; frames of free-running cameras are not)
+SAME_CAPTURE_S = 1e-3
 #: Every pose some stage needs; a cell that tracks none of one refuses to start.
 NEEDED_POSES = ("T_C_RM", "T_C_OM", "T_En_EM")
 #: How long (s) a step waits for the arm to report a frame's capture instant: the arm
@@ -124,6 +138,9 @@ class NavigationTask:
         self.no_calibration = no_calibration
         self.navigator: TwoStageNavigator | None = None
         self.tre_mm: dict[str, float] = {}
+        #: the moving pose last stepped on: (name, capture instant s); each capture of
+        #: it makes one step (the navigator's settle count is in frames)
+        self._stepped: tuple[str, float] | None = None
 
     # -- what the cell can do ------------------------------------------------------------
     def refusal(self) -> str:
@@ -177,16 +194,19 @@ class NavigationTask:
             self.progress("stage approach: extra-oral, robot marker (eq. 5)")
         nav = self.navigator
         moving = MOVING_POSE.get(nav.stage)
-        if moving is None or moving not in rnd.poses:
-            return  # this round does not show what the stage steers by
-        stamp = rnd.poses[moving]
-        poses = {n: self._pose(n, stamp if n == moving else None) for n in NEEDED_POSES}
-        opener = core.pose("T_C_OM")
-        if opener is None or stamp - opener["stamp"] > core.watchdogs.stale_pose:
+        rec = core.pose(moving) if moving is not None else None
+        opener = core.pose(OPENER_POSE)
+        if rec is None or opener is None or not self._paired(rnd, moving, rec, opener):
+            return
+        stamp = rec["stamp"]
+        if stamp - opener["stamp"] > core.watchdogs.stale_pose:
             # the head is taken as still only within stale_pose: an older opener pose
             # steers nothing (the last goal goes stale and the arm holds; pose_timeout
             # stops it if the opener does not come back)
             return
+        self._stepped = (moving, stamp)
+        poses = {n: self._pose(n) for n in NEEDED_POSES}
+        poses[moving], poses[OPENER_POSE] = rec["T"], opener["T"]
         T_B_tcp = await self._arm_at(stamp)
         if T_B_tcp is None:
             return
@@ -216,13 +236,23 @@ class NavigationTask:
             core.set_goal(goal, min(stamp, opener["stamp"]), near_point=near,
                           wrist=np.zeros(4))
 
-    def _pose(self, name: str, stamp: float | None) -> np.ndarray | None:
-        """The store's newest ``name`` (4x4, m), or None; with ``stamp``, only the pose
-        captured then (the round's own)."""
+    def _paired(self, rnd: TrackedRound, moving: str, rec: Mapping[str, Any],
+                opener: Mapping[str, Any]) -> bool:
+        """Whether to step now on the newest ``moving`` pose (its store record ``rec``)
+        after round ``rnd`` (module docstring, "Pairing"): not stepped on yet, and either
+        the opener pose is of its capture or later, or ``rnd`` brought the opener (the
+        wait is one opener round at most)."""
+        if moving not in rnd.poses and OPENER_POSE not in rnd.poses:
+            return False  # this round shows nothing the stage steers by
+        if self._stepped == (moving, rec["stamp"]):
+            return False
+        return (opener["stamp"] >= rec["stamp"] - SAME_CAPTURE_S
+                or OPENER_POSE in rnd.poses)
+
+    def _pose(self, name: str) -> np.ndarray | None:
+        """The store's newest ``name`` (4x4, m), or None."""
         rec = self.core.pose(name)
-        if rec is None or (stamp is not None and rec["stamp"] != stamp):
-            return None
-        return rec["T"]
+        return None if rec is None else rec["T"]
 
     async def _arm_at(self, stamp: float) -> np.ndarray | None:
         """The measured TCP at ``stamp`` (4x4, base, m), waiting up to ``ARM_WAIT_S`` for

@@ -115,6 +115,51 @@ async def test_slow_frames_slow_the_robot_and_do_not_stop_it() -> None:
         await c.close()
 
 
+async def test_inside_the_mouth_a_step_pairs_the_effector_with_its_captures_opener(
+        cell: Lockstep) -> None:
+    """Issue 32 (time): the endoscope's round (the effector) and the stereo pair's (the
+    opener) come from separate sources, the endoscope's first. Its step waits for the
+    opener of the same capture, so the goal is as old as that capture, not a frame period
+    older; each effector capture makes one step; the wait is one opener round at most."""
+    await start_procedure(cell)
+    await cell.run(2 * CAMERA_EVERY)
+    cell.camera_every = 10**9  # only the rounds this test sends
+    cell.nav.navigator.stage = "adjust"   # inside the mouth: the endoscope steers
+    sent: list[float] = []
+    set_goal = cell.core.set_goal
+
+    def recording(T, t_pose, **kw):
+        sent.append(t_pose)
+        return set_goal(T, t_pose, **kw)
+
+    cell.core.set_goal = recording
+    T_OM = cell.core.pose("T_C_OM")["T"]
+    T_EM = np.eye(4)
+    T_EM[2, 3] = 0.04                      # the effector field 4 cm before the endoscope
+
+    async def round_(name: str, pose: str, T: np.ndarray, t: float) -> None:
+        frame = "En" if pose == "T_En_EM" else "C"
+        cell.core.publish_pose(pose, T, t, frame=frame)
+        await cell.nav.on_tracked(TrackedRound(name, {pose: t}))
+
+    await cell.run(30)
+    s1 = cell.clock.now() - 0.02          # a capture the arm history holds
+    await round_("endoscope", "T_En_EM", T_EM, s1)
+    assert sent == []                      # the opener of s1 is not tracked yet
+    await round_("stereo", "T_C_OM", T_OM, s1)
+    assert sent == [s1]                    # paired: the goal is as old as s1
+    await cell.run(30)
+    await round_("stereo", "T_C_OM", T_OM, cell.clock.now() - 0.02)
+    assert sent == [s1]                    # no new effector capture: no new step
+    await cell.run(30)
+    s2 = cell.clock.now() - 0.02
+    await round_("endoscope", "T_En_EM", T_EM, s2)
+    late = s2 - 0.01                       # the stereo pair lags: its next round is older
+    await round_("stereo", "T_C_OM", T_OM, late)
+    assert sent == [s1, late]              # stepped on that round all the same
+    assert cell.core.supervisor.state.value == "RUNNING"
+
+
 async def test_a_frame_older_than_the_arm_history_faults(cell: Lockstep) -> None:
     """Issue 32 (bad input: a frame older than the arm history): FAULT naming the timing,
     and no goal from it."""
@@ -137,10 +182,10 @@ async def test_a_frame_the_arm_never_reports_faults_after_the_wait(cell: Lockste
     anything the arm reports waits ARM_WAIT_S for the arm, then FAULT naming it."""
     await start_procedure(cell)
     await cell.run(2 * CAMERA_EVERY)
-    ahead = cell.clock.now() + 0.5  # within stale_pose of the opener pose
-    rec = cell.core.pose("T_C_RM")
-    cell.core.publish_pose("T_C_RM", rec["T"], ahead, frame="C")
-    await cell.nav.on_tracked(TrackedRound("cell", {"T_C_RM": ahead}))
+    ahead = cell.clock.now() + 0.5
+    for name in ("T_C_RM", "T_C_OM"):  # the stereo pair's round: both fields, one stamp
+        cell.core.publish_pose(name, cell.core.pose(name)["T"], ahead, frame="C")
+    await cell.nav.on_tracked(TrackedRound("cell", {"T_C_RM": ahead, "T_C_OM": ahead}))
     cell.core.supervise_once(cell.clock.now())
     why = str(cell.core.supervisor.snapshot()["reasons"])
     assert "has not reported the frame's instant" in why
