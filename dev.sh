@@ -89,8 +89,10 @@ case "$cmd" in
         "$VENV/bin/ruff" check .
         "$VENV/bin/python" -m tests.layers
         # one pytest worker per core (pytest-xdist): the suite is mostly independent
-        # CPU-bound tests; ORALNAV_TEST_WORKERS=0 runs it in one process
-        exec "$VENV/bin/python" -m pytest -n "${ORALNAV_TEST_WORKERS:-auto}" "$@"
+        # CPU-bound tests. Each module stays on one worker (loadscope), so a module's
+        # shared fixtures (rendered views, calibrations) are built once: 9:13 against 10:15
+        # split test by test, on 2 cores. ORALNAV_TEST_WORKERS=0 runs it in one process.
+        exec "$VENV/bin/python" -m pytest -n "${ORALNAV_TEST_WORKERS:-auto}" --dist loadscope "$@"
         ;;
     bench)
         setup
