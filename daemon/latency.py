@@ -58,8 +58,8 @@ class StageTimes:
         """``{"delivery": {...}, "tracking": {...}}``, each :func:`percentiles_ms` over
         the views kept; None before the first."""
         with self._lock:
-            rounds = np.array(self._views, dtype=float).reshape(-1, 3)
-        if len(rounds) == 0:
+            views = np.array(self._views, dtype=float).reshape(-1, 3)
+        if len(views) == 0:
             return None
-        return {"delivery": percentiles_ms(rounds[:, 1] - rounds[:, 0]),
-                "tracking": percentiles_ms(rounds[:, 2] - rounds[:, 1])}
+        return {"delivery": percentiles_ms(views[:, 1] - views[:, 0]),
+                "tracking": percentiles_ms(views[:, 2] - views[:, 1])}
