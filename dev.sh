@@ -30,9 +30,20 @@ PY
     # Reinstall only when pyproject.toml (or the extras installed) changes.
     local stamp="$VENV/.oralnav-$(sha1sum pyproject.toml | cut -c1-12)-${extras//,/-}"
     if [ ! -f "$stamp" ]; then
-        echo "dev.sh: installing oralnav[$extras] and its dependencies into $VENV" >&2
-        "$VENV/bin/python" -m pip install -q --upgrade pip >&2
-        "$VENV/bin/python" -m pip install -q -e ".[$extras]" >&2
+        echo "dev.sh: installing oralnav[$extras] and its dependencies into $VENV" \
+             "(a few minutes the first time)" >&2
+        # pip's output (progress, and warnings of the machine's own package-index
+        # settings) is kept out of the way, and shown in full only when it fails
+        local log
+        log="$(mktemp)"
+        if ! { "$VENV/bin/python" -m pip install -q --upgrade pip \
+               && "$VENV/bin/python" -m pip install -q -e ".[$extras]"; } >"$log" 2>&1; then
+            cat "$log" >&2
+            rm -f "$log"
+            echo "dev.sh: installing oralnav[$extras] failed (pip's output above)" >&2
+            exit 1
+        fi
+        rm -f "$log"
         rm -f "$VENV"/.oralnav-*
         touch "$stamp"
     fi
@@ -70,11 +81,46 @@ PY
     echo "dev.sh: installing ${missing[*]} with apt-get (Aravis camera backend)" >&2
     export DEBIAN_FRONTEND=noninteractive
     # (set -e does not reach into a function run as an if condition: fail explicitly)
-    if ! apt-get update -q >&2 \
-            || ! apt-get install -y -q --no-install-recommends "${missing[@]}" >&2; then
+    local log
+    log="$(mktemp)"
+    if ! { apt-get update -q && apt-get install -y -q --no-install-recommends \
+           "${missing[@]}"; } >"$log" 2>&1; then
+        cat "$log" >&2  # quiet unless it fails
+        rm -f "$log"
         echo "dev.sh: apt-get could not install ${missing[*]}" >&2
         exit 1
     fi
+    rm -f "$log"
+}
+
+# Debian's chromium, its chromedriver and a font, for the console's browser tests
+# (Selenium drives them; nothing is downloaded from a browser vendor). Installed with
+# apt-get when run as root; otherwise (or off Debian) the browser tests are skipped,
+# saying why.
+browser_packages() {
+    command -v dpkg-query >/dev/null || return 0
+    local missing=() pkg
+    for pkg in chromium chromium-driver fonts-liberation; do
+        [[ "$(dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null)" == *"ok installed" ]] \
+            || missing+=("$pkg")
+    done
+    [ ${#missing[@]} -eq 0 ] && return 0
+    if [ "$(id -u)" -ne 0 ] || ! command -v apt-get >/dev/null; then
+        echo "dev.sh: the console's browser tests need ${missing[*]} (sudo apt-get install" \
+             "${missing[*]}); until then they are skipped" >&2
+        return 0
+    fi
+    echo "dev.sh: installing ${missing[*]} with apt-get (the console's browser tests)" >&2
+    local log
+    log="$(mktemp)"
+    if ! { DEBIAN_FRONTEND=noninteractive apt-get update -q \
+           && DEBIAN_FRONTEND=noninteractive apt-get install -y -q \
+                --no-install-recommends "${missing[@]}"; } >"$log" 2>&1; then
+        cat "$log" >&2
+        echo "dev.sh: apt-get could not install ${missing[*]}: the browser tests will be" \
+             "skipped" >&2
+    fi
+    rm -f "$log"
 }
 
 cmd="${1:-}"
@@ -86,6 +132,7 @@ case "$cmd" in
         ;;
     test)
         setup
+        browser_packages
         "$VENV/bin/ruff" check .
         "$VENV/bin/python" -m tests.layers
         # one pytest worker per core (pytest-xdist): the suite is mostly independent

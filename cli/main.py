@@ -2,6 +2,8 @@
 
     oralnav sim render SCENE.toml --out DIR [--frames N] [--seed N] [--json]
     oralnav sim peers --out DIR [--no-cameras] [--json]
+    oralnav sim aruco --out DIR [--frames N] [--json]        (cli/examples.py)
+    oralnav sim pivot --out FILE [--poses N] [--outliers N] [--json]
     oralnav markers print FIELD [--fields FILE] --dpi N --out F.png [--no-label] [--json]
     oralnav config check [FILE] [--json]
     oralnav track --rig RIG --fields FIELDS --image NAME=PATH [...] [--method M] [--json]
@@ -9,14 +11,18 @@
     oralnav track --calibration NAME=calibration.txt [--fields FIELDS] [--body NAME=PATH ...]
                   [--tag NAME=DICT:ID:SIDE_MM ...] --replay NAME=VIDEO [--frames N] [--json]
     oralnav calibrate pivot --matrices FILE [--method M] [--json] [--out F --cell ID]
+    oralnav plan mouth --out FILE.stl [--width-mm W] [--no-teeth] [--json]
     oralnav plan fpsm --mesh FILE --slices M --points N --out FPSM.json [--json]
     oralnav plan place --scene FILE [--figures DIR] [--json]
+    oralnav replay FILE.mcap [--json]
     oralnav bench navigation|control|calibration|planning [--quick] --out DIR
     oralnav bench needle [--trials N] [--seed S] [--workers W] [--quick] [--tracking]
                          --out DIR [--json]
     oralnav bench faults [--quick] --out DIR [--json]
     oralnav bench busy-demo --out DIR [--runs N] [--busy N] [--json]
+    oralnav bench console --out DIR [--seconds S] [--fps F] [--rounds N] [--json]
     oralnav bench hil --out DIR [--runs N] [--camera-latency S] [--camera-clock-offset S]
+    oralnav bench igtl --out DIR [--seconds S] [--json]
 
 Every ``--json`` prints exactly one JSON object on stdout; progress and logs go to stderr.
 Exit status: 0 done, 2 bad input (the message names the file and key), 1 anything else.
@@ -37,7 +43,7 @@ from typing import Any
 import cv2
 
 from oralnav import __version__
-from oralnav.cli import calibrate, plan, temporal
+from oralnav.cli import calibrate, examples, plan, replay, temporal
 from oralnav.cli.extras import missing_extra, require_bench_extra
 from oralnav.cli.sheets import SheetError, render_sheet, write_png
 from oralnav.config.daemon import load_config
@@ -452,6 +458,30 @@ def cmd_bench_hil(args: argparse.Namespace) -> int:
     return 0 if doc["passed"] == doc["runs"] else 1
 
 
+def cmd_bench_console(args: argparse.Namespace) -> int:
+    """``oralnav bench console``: exit 0 when the tracking rate with a console open on
+    another machine is within 5 % of the rate without one (issue 33), 1 otherwise."""
+    from oralnav.bench import console
+
+    if args.seconds < 2 or args.rounds < 1:
+        raise UsageError(f"--seconds must be at least 2 and --rounds at least 1, got "
+                         f"{args.seconds:g} and {args.rounds}")
+    doc = console.main(Path(args.out), seconds=args.seconds, fps=args.fps,
+                       rounds=args.rounds)
+    s = {k: v for k, v in doc.items() if k != "windows"}
+    if args.json:
+        print(json.dumps(s))
+    else:
+        print(f"tracking {s['tracking_hz_closed']:.2f} rounds/s with the console closed")
+        for mode, where in (("browser", "open in a browser on this machine"),
+                            ("remote", "open on another machine (its requests only)")):
+            m, fps = s[mode], s[mode]["console_fps_per_view"]
+            print(f"  {m['tracking_hz']:.2f} rounds/s {where} ({m['tracking_change_pct']:+.1f}"
+                  f" %); {'-' if fps is None else f'{fps:.2f}'} frames/s per view shown "
+                  f"(setting {s['fps_setting']})")
+    return 0 if s["remote"]["tracking_change_pct"] >= -5.0 else 1
+
+
 def cmd_bench_busy_demo(args: argparse.Namespace) -> int:
     """``oralnav bench busy-demo``: exit 0 when every run passed, 1 otherwise."""
     from oralnav.bench import busy_demo
@@ -486,6 +516,26 @@ def cmd_bench_faults(args: argparse.Namespace) -> int:
     _emit(args, s, "fault campaign: " + ", ".join(
         f"{k} {'met' if v['met'] else 'NOT met' if v['met'] is False else 'undecided'}"
         for k, v in s["targets"].items()) + f" (details in {s['json']})")
+    return 0
+
+
+def cmd_bench_igtl(args: argparse.Namespace) -> int:
+    """``oralnav bench igtl``: the OpenIGTLink server's message rate and pose age on
+    loopback, read with pyigtl's client (bench/igtl.py)."""
+    from oralnav.bench import igtl
+    from oralnav.daemon.igtl import standalone_server
+
+    if not args.seconds > 0:
+        raise UsageError(f"--seconds must be positive, got {args.seconds:g}")
+    doc = igtl.main(Path(args.out), standalone_server, seconds=args.seconds)
+    if args.json:
+        print(json.dumps(doc["runs"]))
+    else:
+        for name, r in doc["runs"].items():
+            age = r["age_ms"] or {}
+            print(f"{name}: {r['messages_per_s_per_pose']:.1f} messages/s per pose "
+                  f"({r['poses']} poses, server at {r['rate_hz']:g} Hz); age at receipt "
+                  f"p50 {age.get('p50', '-')} ms, p99 {age.get('p99', '-')} ms")
     return 0
 
 
@@ -540,6 +590,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "late), what oralnav calibrate temporal finds")
     pe.add_argument("--json", action="store_true", help="print one JSON object")
     pe.set_defaults(func=cmd_sim_peers)
+    examples.add_parsers(sim)
 
     mk = sub.add_parser("markers", help="marker fields").add_subparsers(dest="cmd",
                                                                         required=True)
@@ -590,6 +641,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     calibrate.add_parser(sub)
     plan.add_parser(sub)
+    replay.add_parser(sub)
 
     bn = sub.add_parser("bench", help="benchmarks").add_subparsers(dest="cmd", required=True)
     nv = bn.add_parser("navigation", help="speed/accuracy charts of the tracker (minutes)")
@@ -650,6 +702,13 @@ def build_parser() -> argparse.ArgumentParser:
     hl.add_argument("--out", required=True, help="folder for hil.json and each run's log")
     hl.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     hl.set_defaults(func=cmd_bench_hil)
+    ig = bn.add_parser("igtl", help="the OpenIGTLink server (3D Slicer): messages per "
+                                    "second and pose age at receipt on loopback (about "
+                                    "15 s)")
+    ig.add_argument("--seconds", type=float, default=5.0, help="s per run (3 runs)")
+    ig.add_argument("--out", required=True, help="folder for igtl.json")
+    ig.add_argument("--json", action="store_true", help="print the runs as one JSON object")
+    ig.set_defaults(func=cmd_bench_igtl)
     bd = bn.add_parser("busy-demo", help="the main job (oralnavd --demo) run again and again "
                                          "while other processes keep every core busy "
                                          "(about 40 s a run on 2 cores)")
@@ -659,6 +718,16 @@ def build_parser() -> argparse.ArgumentParser:
     bd.add_argument("--out", required=True, help="folder for busy_demo.json and each run's log")
     bd.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     bd.set_defaults(func=cmd_bench_busy_demo)
+    co = bn.add_parser("console", help="the tracking rate with the web console open and "
+                                       "closed, and the console's frame rate (headless "
+                                       "chromium; about 2 minutes)")
+    co.add_argument("--seconds", type=float, default=20.0, help="s per window (default 20)")
+    co.add_argument("--fps", type=int, default=10, choices=(1, 2, 5, 10),
+                    help="the console's frames-per-second setting (default 10, its highest)")
+    co.add_argument("--rounds", type=int, default=2, help="(closed, open) window pairs")
+    co.add_argument("--out", required=True, help="folder for console.json and the log")
+    co.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    co.set_defaults(func=cmd_bench_console)
     return p
 
 
@@ -674,7 +743,9 @@ def run(argv: Sequence[str] | None = None) -> int:
         _fail(args, extra, 2)
         return 2
     except (ConfigError, ControlError, RenderError, SheetError, UsageError,
-            calibrate.SampleFileError, temporal.RecordError, FileNotFoundError) as exc:
+            calibrate.SampleFileError, temporal.RecordError, replay.ReplayFileError,
+            examples.ExampleError,
+            FileNotFoundError) as exc:
         _fail(args, str(exc), 2)
         return 2
     except (OSError, RuntimeError, ValueError) as exc:

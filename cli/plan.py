@@ -4,11 +4,16 @@
                       [--samples Z] [--method slp|lbfgs|paper] [--units auto|m|mm]
                       [--z-range-mm LOW HIGH] [--margin-mm D] [--figures DIR] [--json]
     oralnav plan place --scene FILE [--equation 14|21|22] [--seed N] [--figures DIR] [--json]
+    oralnav plan mouth --out FILE [--width-mm W] [--height-mm H] [--depth-mm D] [--no-teeth]
+                       [--missing TOOTH ...] [--closed-front] [--resolution R] [--units mm|m]
+                       [--json]
 
 ``plan fpsm`` fits the surrogate model to a mesh and writes it atomically (a refused fit
 writes nothing). ``plan place`` prints ``{"d_T", "theta_T", "objective", "iterations",
 "time_ms", "collision_free"}`` (metres, radians) and exits 3 when no collision-free
 placement exists: the numbers are then the least bad found, never a plan to follow.
+``plan mouth`` writes the parametric oral cavity (``sim/world/oral_cavity.py``), a scan's
+stand-in, as a mesh ``plan fpsm`` reads.
 """
 
 from __future__ import annotations
@@ -115,6 +120,62 @@ def cmd_place(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_mouth(args: argparse.Namespace) -> int:
+    """Write the parametric oral cavity as a mesh (STL, PLY or OBJ from the suffix) in the
+    Center frame: Z from the pharynx (z = 0) out of the mouth, y up toward the palate."""
+    from oralnav.cli.examples import ExampleError
+    from oralnav.config.mesh import FORMATS, check_mesh, save_mesh
+    from oralnav.sim.world.oral_cavity import dental_arches, oral_cavity_mesh
+
+    out = Path(args.out)
+    if out.suffix.lower() not in FORMATS:
+        raise ExampleError(f"--out {out}: the suffix picks the format; use one of "
+                           f"{', '.join(FORMATS)}")
+
+    for option, mm in (("--width-mm", args.width_mm), ("--height-mm", args.height_mm),
+                       ("--depth-mm", args.depth_mm)):
+        if not 20.0 <= mm <= 300.0:  # the model's own range (an oral cavity)
+            raise ExampleError(f"{option} must be 20..300 mm, got {mm:g}")
+    if not 0.0 < args.resolution <= 4.0:
+        raise ExampleError(f"--resolution must be above 0 and at most 4, got "
+                           f"{args.resolution:g}")
+    size = (args.width_mm * 1e-3, args.height_mm * 1e-3, args.depth_mm * 1e-3)
+    teeth = not args.no_teeth
+    crowns: tuple = ()
+    if teeth:
+        try:
+            crowns = dental_arches(*size)
+        except ValueError:
+            raise ExampleError(f"--width-mm {args.width_mm:g} --height-mm {args.height_mm:g}: "
+                               "the mouth is too small for the dental arches; open it wider "
+                               "or give --no-teeth") from None
+    elif args.missing:
+        raise ExampleError("--missing leaves out single teeth, but --no-teeth leaves out all")
+    unknown = sorted(set(args.missing) - {t.name for t in crowns})
+    if unknown:
+        raise ExampleError(f"--missing: no tooth named {', '.join(unknown)}; the crowns are "
+                           f"{', '.join(t.name for t in crowns)}")
+    mesh = oral_cavity_mesh(*size, teeth=teeth, closed_front=args.closed_front,
+                            resolution=args.resolution, missing=tuple(args.missing))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out = save_mesh(mesh, out, units=args.units)
+    report = check_mesh(mesh.copy(), out)
+    doc = {"out": str(out), "units": args.units, "width_mm": args.width_mm,
+           "height_mm": args.height_mm, "depth_mm": args.depth_mm,
+           "teeth": len(crowns) - len(set(args.missing)), "missing": list(args.missing),
+           "closed_front": args.closed_front, "faces": report.faces,
+           "vertices": report.vertices, "components": report.components,
+           "watertight": report.watertight, "boundary_edges": report.boundary_edges}
+    if args.json:
+        print(json.dumps(doc))
+    else:
+        front = "closed (watertight)" if report.watertight else "open, as a scan's"
+        print(f"mouth {args.width_mm:g} x {args.height_mm:g} x {args.depth_mm:g} mm with "
+              f"{doc['teeth']} crowns, front {front}: {report.faces} faces -> {out} "
+              f"({args.units}, Center frame); fit it with oralnav plan fpsm --mesh {out}")
+    return 0
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
     pl = sub.add_parser("plan", help="preoperative planning: surrogate model and instrument "
                                      "placement").add_subparsers(dest="cmd", required=True)
@@ -143,3 +204,24 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     pc.add_argument("--figures", help="folder for the contour and convergence PNGs")
     pc.add_argument("--json", action="store_true", help="print one JSON object")
     pc.set_defaults(func=cmd_place)
+    mo = pl.add_parser("mouth", help="write the parametric oral cavity (a scan's stand-in) as "
+                                     "a mesh for plan fpsm")
+    mo.add_argument("--out", required=True, help="mesh file to write: .stl, .ply or .obj")
+    mo.add_argument("--width-mm", type=float, default=55.0,
+                    help="mouth opening, cheek to cheek (Center x), mm (55)")
+    mo.add_argument("--height-mm", type=float, default=45.0,
+                    help="mouth opening, floor to palate (Center y), mm (45)")
+    mo.add_argument("--depth-mm", type=float, default=90.0,
+                    help="pharynx to opening (Center z), mm (90)")
+    mo.add_argument("--no-teeth", action="store_true", help="the soft-tissue wall only")
+    mo.add_argument("--missing", nargs="+", default=[], metavar="TOOTH",
+                    help="crowns to leave out, e.g. lower_left_molar1 (an implant's gap)")
+    mo.add_argument("--closed-front", action="store_true",
+                    help="cap the opening too, so the mesh is watertight (default: open, as "
+                         "a scan of an open mouth)")
+    mo.add_argument("--resolution", type=float, default=1.0,
+                    help="scales the face count (1: about 29 000 faces)")
+    mo.add_argument("--units", choices=("mm", "m"), default="mm",
+                    help="the file's length unit (mm, as scanners write)")
+    mo.add_argument("--json", action="store_true", help="print one JSON object")
+    mo.set_defaults(func=cmd_mouth)

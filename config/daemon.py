@@ -179,8 +179,9 @@ class ApiSection(Strict):
     ``tokens_file`` is relative to this configuration file; ``None`` makes the daemon
     generate demo tokens at start. ``audit_log`` is state, not configuration: a relative
     path is resolved against ``$STATE_DIRECTORY`` (set by systemd's ``StateDirectory=``),
-    else the working directory, never against the (possibly read-only, packaged) config
-    folder; see ``oralnav.daemon.audit.resolve_audit_path``.
+    else the user's state folder (``$XDG_STATE_HOME/oralnav`` or
+    ``~/.local/state/oralnav``), never against the (possibly read-only, packaged) config
+    folder nor the working directory; see ``oralnav.daemon.audit.resolve_audit_path``.
     """
 
     # declared before host so that host's check below sees it
@@ -191,6 +192,9 @@ class ApiSection(Strict):
     tokens_file: str | None = Field(None, min_length=1, validate_default=True)
     audit_log: str = Field("oralnav-audit.jsonl", min_length=1)
     telemetry_hz: Annotated[Float, Field(ge=1, le=100)] = 20.0
+    # the console's live views: JPEGs encoded per camera and second at most, whatever the
+    # number of consoles (docs/console.md: the cost it bounds)
+    views_max_hz: Annotated[Float, Field(gt=0, le=60)] = 10.0
     # HTTPS: PEM certificate (chain) and private key, relative to this file; both or none
     tls_cert: str | None = Field(None, min_length=1)
     tls_key: str | None = Field(None, min_length=1, validate_default=True)
@@ -254,6 +258,33 @@ class ApiSection(Strict):
         # a surgical robot's command port must not face the network by accident
         if not cls.is_loopback(v) and info.data.get("allow_remote") is not True:
             raise ValueError(f"{v!r} is not a loopback address; the operator API binds "
+                             "remote interfaces only with allow_remote = true")
+        return v
+
+
+class IgtlSection(Strict):
+    """The OpenIGTLink server for 3D Slicer (docs/api.md, "OpenIGTLink (3D Slicer)"):
+    tracked poses and the arm's TCP out as TRANSFORM messages at ``rate_hz`` (Hz), suture
+    targets in as POINT lists (unless ``accept_targets = false``). The section's absence
+    turns it off, as does ``enabled = false``. Like ``[api]``, it binds a loopback address
+    unless ``allow_remote = true``: it has no authentication of its own."""
+
+    enabled: bool = Field(True, strict=True)
+    # declared before host so that host's check below sees it
+    allow_remote: bool = Field(False, strict=True)
+    # validate_default: a default host must pass the loopback check too
+    host: str = Field("127.0.0.1", min_length=1, validate_default=True)
+    port: Annotated[Int, Field(ge=1, le=65535)] = 18944
+    # poses sent per second at most (each new pose once); Slicer renders at 30-60 Hz
+    rate_hz: Annotated[Float, Field(ge=1, le=120)] = 30.0
+    accept_targets: bool = Field(True, strict=True)
+
+    @field_validator("host")
+    @classmethod
+    def _loopback_unless_allowed(cls, v: str, info: ValidationInfo) -> str:
+        # anyone who reaches this port may set suture targets: never the network by accident
+        if not ApiSection.is_loopback(v) and info.data.get("allow_remote") is not True:
+            raise ValueError(f"{v!r} is not a loopback address; the OpenIGTLink server binds "
                              "remote interfaces only with allow_remote = true")
         return v
 
@@ -340,6 +371,7 @@ class DaemonFile(Strict):
     cameras: dict[str, CameraSection] = Field(default_factory=dict)
     stereo: StereoSection = StereoSection()
     api: ApiSection = ApiSection()
+    igtl: IgtlSection | None = None   # absent: no OpenIGTLink server
 
     @model_validator(mode="after")
     def _sim_cell_drives_sim_devices(self) -> DaemonFile:
@@ -396,16 +428,21 @@ class DaemonConfig:
 
 
 def _check_cameras(path: Path, doc: DaemonFile, rig: Rig, endo: Rig | None) -> None:
-    """Each ``[cameras.<name>]`` names a camera of the rigs, and its driver accepts its
-    options (the constructor checks them and does no I/O)."""
+    """Each ``[cameras.<name>]`` names a camera of the rigs (a monitor camera: one no rig
+    names), and its driver accepts its options (the constructor checks them and does no
+    I/O)."""
     from oralnav.drivers.camera import camera_class
     from oralnav.drivers.errors import DriverInitError
 
     known = list(rig.names) + (list(endo.names) if endo is not None else [])
     for name, cam in doc.cameras.items():
-        if name not in known:
+        if cam.role == "monitor" and name in known:
+            raise ConfigError(path, f"cameras.{name}.role", f"{name!r} is a camera of the "
+                              "rigs, tracked: a monitor camera takes a name no rig uses")
+        if cam.role == "tracking" and name not in known:
             raise ConfigError(path, f"cameras.{name}", f"no camera {name!r} in the rigs "
-                              f"(cameras: {', '.join(known)})")
+                              f"(cameras: {', '.join(known)}); a camera that only shows the "
+                              "operative area takes role = \"monitor\"")
         try:
             camera_class(cam.backend)(name=name, **cam.driver_options())
         except DriverInitError as exc:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -22,7 +23,7 @@ from oralnav.control.vision.markers import (
 )
 
 from .errors import ConfigError
-from .loader import Float, Int, Strict, build, read_toml, resolve_file, validate
+from .loader import Float, Int, Strict, build, dump_toml, read_toml, resolve_file, validate
 
 Length = Annotated[Float, Field(gt=0, le=1.0)]
 
@@ -170,3 +171,32 @@ def fields_from_dict(data: dict, path: str | Path) -> dict[str, MarkerField]:
 def load_fields(path: str | Path) -> dict[str, MarkerField]:
     """Read and validate a marker-field file; raises ``ConfigError`` naming file and key."""
     return fields_from_dict(read_toml(path), path)
+
+
+def fields_to_files(fields: Sequence[MarkerField], name: str = "fields.toml") -> dict[str, str]:
+    """``fields`` written as a marker-field file ``name`` and the corner tables its points
+    surfaces name (``<field>.corners.csv`` beside it): file name -> text, in the field
+    order given. :func:`load_fields` reads them back as equal fields: every float is
+    written with the digits that round-trip it exactly (a session recording rebuilds its
+    trackers from these files, docs/recording.md)."""
+    doc: dict[str, dict] = {}
+    files: dict[str, str] = {}
+    for f in fields:
+        s = f.surface
+        entry: dict = {"family": f.family, "dictionary": f.dictionary,
+                       "squares": list(f.squares), "square": float(f.square),
+                       "marker": float(f.marker), "first_id": int(f.first_id)}
+        if isinstance(s, CylinderSurface):
+            entry["surface"] = {"kind": "cylinder", "radius": float(s.radius)}
+        elif isinstance(s, PointsSurface):
+            table = f"{f.name}.corners.csv"
+            entry["surface"] = {"kind": "points", "file": table}
+            rows = [f"{int(i)},{float(x)!r},{float(y)!r},{float(z)!r}"
+                    for i, (x, y, z) in sorted(s.points.items())]
+            files[table] = "corner_id,x,y,z\n" + "\n".join(rows) + "\n"
+        else:
+            entry["surface"] = {"kind": "plane"}
+        doc[f.name] = entry
+    files = {name: "# oralnav marker fields: lengths in metres\n"
+             + dump_toml({"fields": doc}), **files}
+    return files

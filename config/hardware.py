@@ -182,13 +182,18 @@ class EffectorSection(Strict):
 
 
 class CameraSection(BaseModel):
-    """``[cameras.<name>]``: one camera of the rig, ``<name>`` as the rig names it.
-    ``backend`` picks the driver; every other key is that driver's own option
+    """``[cameras.<name>]``: one camera of the rig, ``<name>`` as the rig names it, or,
+    with ``role = "monitor"``, a camera that only shows the operative area (any name no
+    rig uses). ``backend`` picks the driver; every other key is that driver's own option
     (docs/cameras.md), checked by the driver when the configuration loads."""
 
     model_config = ConfigDict(extra="allow", frozen=True, allow_inf_nan=False)
 
     backend: Literal["aravis", "v4l2", "replay"]
+    # "tracking": a camera of the rigs, tracked; "monitor": a camera of the operative area
+    # that no rig names, read only to be shown in the console and recorded (never tracked,
+    # and its stall stops nothing: navigation does not see through it)
+    role: Literal["tracking", "monitor"] = "tracking"
 
     def driver_options(self) -> dict[str, Any]:
         """The backend's constructor arguments (lists become tuples: TOML has no tuple)."""

@@ -14,6 +14,9 @@ are skipped.
 Calibration (``calibration.txt``): three lines of the 3x3 intrinsic matrix K (pixels),
 then one line of OpenCV distortion coefficients (k1 k2 p1 p2 k3, or any length OpenCV
 accepts).
+
+:func:`save_rigid_body` and :func:`save_calibration_txt` write both formats (atomically),
+so that what the project generates reads back here and in the peer.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from oralnav.control.vision.markers import aruco_dictionary
 from oralnav.control.vision.rigid_body import RigidBody, check_tag_corners
 
 from .errors import ConfigError
+from .loader import atomic_write_text
 
 #: Length units a table may be written in, as metres per unit.
 UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
@@ -195,3 +199,40 @@ def load_calibration_txt(path: str | Path, size: tuple[int, int],
         return CameraModel(name, size, np.array(rows), np.array(dist))
     except CameraModelError as exc:
         raise ConfigError(path, "", str(exc)) from None
+
+
+def _row(values: Iterable[float]) -> str:
+    # 10 significant digits: sub-micrometre in millimetres, exact for the shipped values
+    return " ".join(f"{float(v):.10g}" for v in values)
+
+
+def save_rigid_body(body: RigidBody, path: str | Path, units: str = "mm") -> Path:
+    """Write ``body`` as a scikit-surgery tag table (16 columns: id, centre, 4 corners) in
+    ``units`` atomically, with a comment line naming the body and its dictionary (the
+    table itself does not hold it); :func:`load_rigid_body` reads it back.
+
+    Raises ``ValueError`` for an unknown unit, ``OSError`` when the file cannot be written.
+    """
+    if units not in UNITS:
+        raise ValueError(f"units must be one of {', '.join(UNITS)}, got {units!r}")
+    scale = 1.0 / UNITS[units]
+    lines = [f"# rigid body {body.name!r}: {len(body)} tags of {body.dictionary}; tag id, "
+             f"centre x y z, corners 0-3 x y z ({units}; top-left, top-right, "
+             "bottom-right, bottom-left)"]
+    for tid, corners in body.tags.items():
+        c = np.asarray(corners) * scale
+        lines.append(f"{tid} " + _row([*c.mean(axis=0), *c.ravel()]))
+    path = Path(path)
+    atomic_write_text(path, "\n".join(lines) + "\n")
+    return path
+
+
+def save_calibration_txt(camera: CameraModel, path: str | Path) -> Path:
+    """Write ``camera``'s intrinsics as a scikit-surgery ``calibration.txt`` atomically:
+    3 lines of K, 1 of distortion (pixels). No comment line: the peer reads every line.
+    The image size is not part of the format; :func:`load_calibration_txt` needs it given.
+    """
+    lines = [_row(row) for row in camera.K] + [_row(camera.dist)]
+    path = Path(path)
+    atomic_write_text(path, "\n".join(lines) + "\n")
+    return path

@@ -1,5 +1,5 @@
 """The operator REST API: status, poses, targets, e-stop, reset, procedure, guided insertion,
-live telemetry.
+live telemetry and views, and the surgeon's web console at ``/``.
 
 :func:`build_app` wraps an :class:`Operations` (the daemon core) in a FastAPI app;
 :func:`serve` runs it with uvicorn inside the daemon's anyio task group. The bodies it
@@ -28,8 +28,10 @@ Rules every endpoint keeps:
 import asyncio
 import contextlib
 import functools
+import importlib.resources
 import json
 import logging
+import math
 import re
 import socket
 from collections.abc import Callable, Iterator, Mapping
@@ -38,10 +40,12 @@ from typing import Annotated, Any, Literal, Protocol
 import anyio
 import uvicorn
 from anyio.abc import TaskStatus
-from fastapi import Depends, FastAPI, Request, WebSocket
+from fastapi import Depends, FastAPI, Query, Request, Response, WebSocket
 from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.websockets import WebSocketDisconnect, WebSocketState
@@ -60,6 +64,15 @@ from oralnav.daemon.api_gate import authorize as _authorize
 from oralnav.daemon.api_gate import bearer_from_header as _bearer_from_header
 from oralnav.daemon.audit import AuditError, AuditLog
 from oralnav.daemon.auth import Principal, Role, TokenStore
+from oralnav.daemon.console import CONSOLE_DIR, SECURITY_HEADERS, index_html
+from oralnav.daemon.live_views import (
+    MAX_QUALITY,
+    MAX_WIDTH,
+    MIN_QUALITY,
+    MIN_WIDTH,
+    LiveViews,
+    NoFrame,
+)
 from oralnav.daemon.schemas import (
     Device,
     EstopBody,
@@ -68,6 +81,8 @@ from oralnav.daemon.schemas import (
     NeedleStep,
     Problem,
     ProcedureAction,
+    RecordingStartBody,
+    SelectTargetBody,
     SutureTarget,
     TargetsBody,
     TemporalCalibrationBody,
@@ -127,6 +142,8 @@ class Operations(Protocol):
     def targets(self) -> list[SutureTarget]: ...
     def set_targets(self, targets: list[SutureTarget],
                     who: str) -> None: ...  # StateError (e.g. while RUNNING)
+    def select_target(self, name: str, who: str) -> None: ...  # StateError: no such target
+    def planned_targets(self) -> list[SutureTarget]: ...  # the cell file's, may be empty
     # guided insertion (docs/control_loop.md "Guided insertion"); plan_guide blocks (it
     # fits and places: the API calls it in a worker thread) and returns the plan summary;
     # ValueError -> 422 (bad scene or plan), StateError -> 409 (no collision-free
@@ -145,9 +162,25 @@ class Operations(Protocol):
     # run's report at once (StateError -> 409); the report gives the phase and the result
     def start_temporal(self, body: TemporalCalibrationBody, who: str) -> dict[str, Any]: ...
     def temporal(self, samples: bool = False) -> dict[str, Any]: ...
+    # session recording (docs/recording.md): start creates the file (blocking: worker
+    # thread) and returns the status; ValueError -> 422 (bad options, a file that cannot be
+    # created), StateError -> 409 (already recording); stop waits for the writer and is
+    # never refused
+    def recording(self) -> dict[str, Any]: ...
+    def start_recording(self, body: RecordingStartBody, who: str) -> dict[str, Any]: ...
+    def stop_recording(self, who: str) -> dict[str, Any]: ...
 
 
 # -- helpers -----------------------------------------------------------------------------
+#: where /docs loads Swagger UI's script, style and icon from: this daemon, never a CDN
+SWAGGER_ASSETS = "/docs/assets"
+
+
+def _swagger_dir() -> str:
+    """The folder of Swagger UI's files as the ``fastapi-swagger`` package ships them."""
+    return str(importlib.resources.files("fastapi_swagger") / "resources")
+
+
 def _client(conn: Request | WebSocket) -> str | None:
     return f"{conn.client.host}:{conn.client.port}" if conn.client else None
 
@@ -193,10 +226,12 @@ async def _body(request: Request) -> bytes:
 # -- the app -----------------------------------------------------------------------------
 def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
               telemetry_hz: float = 20.0,
-              auth_limiter: FailureLimiter | None = None) -> FastAPI:
+              auth_limiter: FailureLimiter | None = None,
+              views: LiveViews | None = None) -> FastAPI:
     """The operator API over ``ops``; ``telemetry_hz`` is the websocket snapshot rate;
     ``auth_limiter`` limits failed authentication per client address (default: the
-    limits of ``daemon/api_gate.py``; it is also ``app.state.auth_limiter``).
+    limits of ``daemon/api_gate.py``; it is also ``app.state.auth_limiter``); ``views``:
+    the cameras' newest frames for ``/views`` (none: the list is empty).
 
     ``audit`` must be open. The e-stop is never refused for an audit failure: refusing to
     stop a robot because a disk is full would trade safety for bookkeeping. It runs, its
@@ -206,9 +241,12 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
     if not 0 < telemetry_hz <= 1000:
         raise ValueError(f"telemetry_hz must be in (0, 1000] Hz, got {telemetry_hz}")
     period = 1.0 / telemetry_hz
+    # /docs is served below from the package's own Swagger UI files (an offline operator
+    # station has no CDN); ReDoc, which only loads from a CDN, is not served
     app = FastAPI(title="oralnav operator API", version=__version__,
                   description="Status, poses, targets, e-stop and procedure control of the "
-                              "oralnav suturing robot. See docs/api.md.")
+                              "oralnav suturing robot. See docs/api.md.",
+                  docs_url=None, redoc_url=None)
     bearer = HTTPBearer(auto_error=False, scheme_name="bearer",
                         description="a token from the tokens file; observer reads, "
                                     "operator also commands")
@@ -389,6 +427,75 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
     async def get_targets(_: Observer) -> JSONResponse:
         return read(lambda: {"targets": ops.targets()})
 
+    @app.get("/targets/planned", responses=_READ_ERRORS,
+             summary="The cell's planned suture targets (its cell file), not yet "
+                     "registered: POST them to /targets to use them")
+    async def get_planned_targets(_: Observer) -> JSONResponse:
+        return read(lambda: {"targets": ops.planned_targets()})
+
+    @app.get("/session", responses=_READ_ERRORS,
+             summary="Who the token is: its name and role (the console's sign-in)")
+    async def get_session(who: Observer) -> JSONResponse:
+        return JSONResponse({"name": who.name, "role": who.role})
+
+    @app.post("/targets/select", responses=_COMMAND_ERRORS,
+              summary="Select the current suture target: a running procedure goes there "
+                      "next (409 for a name not registered)")
+    async def post_target_select(request: Request, who: Operator,
+                                 body: SelectTargetBody) -> JSONResponse:
+        return await command(request, who, f"select target {body.name}",
+                             lambda: ops.select_target(body.name, who.name))
+
+    # -- live views (daemon/live_views.py) and the console (daemon/console/) -------------
+    @app.get("/views", responses=_READ_ERRORS,
+             summary="The cameras with a frame: size, counter, capture instant, and the "
+                     "tracked fields' overlay in their pixels")
+    async def get_views(_: Observer) -> JSONResponse:
+        if views is None:
+            return JSONResponse({"cameras": [], "max_hz": None})
+        return read(lambda: {"cameras": views.cameras(), "max_hz": views.max_hz})
+
+    @app.get("/views/{camera}/image", response_class=Response, responses={
+                 200: {"content": {"image/jpeg": {}},
+                       "description": "the newest frame as JPEG; X-Frame-Counter and "
+                                      "X-Capture-Time (s, daemon monotonic clock)"},
+                 **_READ_ERRORS, **_answers(
+                     _404=(Problem, "no such camera, or no frame from it yet"),
+                     _422=(ValidationProblem, "width or quality out of bounds"))},
+             summary="A camera's newest frame, downscaled JPEG (encoded at most "
+                     "[api] views_max_hz times a second per camera)")
+    async def get_view_image(
+            _: Observer, camera: str,
+            width: Annotated[int, Query(ge=MIN_WIDTH, le=MAX_WIDTH)] = 640,
+            quality: Annotated[int, Query(ge=MIN_QUALITY, le=MAX_QUALITY)] = 70) -> Response:
+        if views is None:
+            return JSONResponse({"detail": "this daemon shows no views"}, 404)
+        try:
+            data, counter, stamp = await anyio.to_thread.run_sync(
+                views.jpeg, camera, width, quality)
+        except NoFrame as exc:
+            return JSONResponse({"detail": str(exc)}, 404)
+        return Response(data, media_type="image/jpeg", headers={
+            "Cache-Control": "no-store", "X-Frame-Counter": str(counter),
+            "X-Capture-Time": f"{stamp:.6f}"})
+
+    @app.get("/", include_in_schema=False)
+    async def console_page() -> Response:
+        return Response(index_html(), media_type="text/html; charset=utf-8",
+                        headers={"Cache-Control": "no-cache", **SECURITY_HEADERS})
+
+    app.mount("/console", StaticFiles(directory=CONSOLE_DIR), name="console")
+
+    @app.get("/docs", include_in_schema=False)
+    async def swagger_ui() -> Response:
+        return get_swagger_ui_html(
+            openapi_url=app.openapi_url or "/openapi.json", title=f"{app.title} - Swagger UI",
+            swagger_js_url=f"{SWAGGER_ASSETS}/swagger-ui-bundle.js",
+            swagger_css_url=f"{SWAGGER_ASSETS}/swagger-ui.css",
+            swagger_favicon_url=f"{SWAGGER_ASSETS}/favicon-32x32.png")
+
+    app.mount(SWAGGER_ASSETS, StaticFiles(directory=_swagger_dir()), name="swagger")
+
     @app.post("/estop", responses=_ESTOP_ERRORS,
               summary="Latch the e-stop (always runs, even if auditing fails)")
     async def post_estop(request: Request, who: Operator,
@@ -466,6 +573,26 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
         return await command(request, who, "temporal calibration",
                              lambda: ops.start_temporal(body, who.name))
 
+    @app.get("/recording", responses=_READ_ERRORS,
+             summary="The session recording's state, file and figures (frames written, "
+                     "dropped; MB/s)")
+    async def get_recording(_: Observer) -> JSONResponse:
+        return read(ops.recording)
+
+    @app.post("/recording/start", responses=_COMMAND_ERRORS,
+              summary="Record the session to an MCAP file (422 for a file that cannot be "
+                      "created, 409 while recording)")
+    async def post_recording_start(request: Request, who: Operator,
+                                   body: RecordingStartBody) -> JSONResponse:
+        return await command(request, who, "recording start",
+                             lambda: ops.start_recording(body, who.name), in_thread=True)
+
+    @app.post("/recording/stop", responses=_COMMAND_ERRORS,
+              summary="End the recording and close its file (never refused)")
+    async def post_recording_stop(request: Request, who: Operator) -> JSONResponse:
+        return await command(request, who, "recording stop",
+                             lambda: ops.stop_recording(who.name), in_thread=True)
+
     @app.get("/needle", responses=_READ_ERRORS,
              summary="The needle cell, the procedure's next step and results")
     async def get_needle(_: Observer) -> JSONResponse:
@@ -523,21 +650,69 @@ async def _deny(ws: WebSocket, status: int, detail: str,
         await ws.close(code=1008, reason=detail[:120])
 
 
+#: what a telemetry client may subscribe to besides the snapshot: ``status`` (the whole
+#: GET /status document, at most every STATUS_PERIOD_S and at once on a safety state
+#: change) and ``poses`` (GET /poses, with every snapshot)
+TOPICS = frozenset({"status", "poses"})
+#: s, the least time between two ``status`` documents on one connection
+STATUS_PERIOD_S = 0.2
+#: bytes: a longer client message is refused (a subscription is a few dozen bytes)
+MAX_CLIENT_MESSAGE = 4096
+
+
+def _subscription(text: str | None) -> tuple[set[str] | None, str | None]:
+    """A client message ``{"subscribe": [topic, ...]}`` as (topics, None), or (None, why
+    it is refused)."""
+    if text is None or len(text) > MAX_CLIENT_MESSAGE:
+        return None, f"send text of at most {MAX_CLIENT_MESSAGE} bytes"
+    try:
+        doc = json.loads(text)
+    except ValueError:
+        return None, "not JSON; send {\"subscribe\": [\"status\", \"poses\"]}"
+    topics = doc.get("subscribe") if isinstance(doc, dict) else None
+    if not isinstance(topics, list) or not all(isinstance(t, str) for t in topics):
+        return None, "expected {\"subscribe\": [topic, ...]}"
+    unknown = sorted(set(topics) - TOPICS)
+    if unknown:
+        return None, f"unknown topic(s) {', '.join(unknown)} (known: {', '.join(sorted(TOPICS))})"
+    return set(topics), None
+
+
 async def _stream(ws: WebSocket, ops: Operations, period: float) -> None:
-    """Send ``ops.telemetry()`` every ``period`` seconds until the client disconnects."""
+    """Send ``ops.telemetry()`` every ``period`` seconds until the client disconnects,
+    with what it subscribed to (:data:`TOPICS`; a refused message is answered
+    ``{"error": ...}`` and changes nothing)."""
+    topics: set[str] = set()
     async with anyio.create_task_group() as tg:
         async def watch() -> None:
-            # the client never needs to talk; reading is how a disconnect is seen at once
-            while (await ws.receive())["type"] != "websocket.disconnect":
-                pass
+            # reading is also how a disconnect is seen at once
+            while True:
+                msg = await ws.receive()
+                if msg["type"] == "websocket.disconnect":
+                    break
+                wanted, why = _subscription(msg.get("text"))
+                if wanted is None:
+                    await ws.send_text(json.dumps({"error": why}))
+                else:
+                    topics.clear()
+                    topics.update(wanted)
             tg.cancel_scope.cancel()
 
         tg.start_soon(watch)
         deadline = anyio.current_time()
+        last_status, last_state = -math.inf, None
         try:
             while True:
                 try:
-                    text = json.dumps(jsonable(ops.telemetry()), allow_nan=False)
+                    doc = ops.telemetry()
+                    now = anyio.current_time()
+                    if "status" in topics and (now - last_status >= STATUS_PERIOD_S
+                                               or doc.get("state") != last_state):
+                        doc = {**doc, "status": ops.status()}
+                        last_status, last_state = now, doc.get("state")
+                    if "poses" in topics:
+                        doc = {**doc, "poses": ops.poses()}
+                    text = json.dumps(jsonable(doc), allow_nan=False)
                 except Exception as exc:
                     log.exception("telemetry snapshot failed")
                     await ws.close(code=1011, reason=f"telemetry failed: {type(exc).__name__}")

@@ -55,8 +55,10 @@ if TYPE_CHECKING:
     from oralnav.config.daemon import ApiSection
 
 #: the largest body (bytes) each POST endpoint accepts; others get :data:`DEFAULT_LIMIT`.
-#: /targets: 64 targets of about 200 bytes each, with room for pretty-printing
-BODY_LIMITS: dict[str, int] = {"/targets": 64 * 1024, "/guide/plan": 16 * 1024}
+#: /targets: 64 targets of about 200 bytes each, with room for pretty-printing;
+#: /recording/start: a path of up to 4096 characters and its options
+BODY_LIMITS: dict[str, int] = {"/targets": 64 * 1024, "/guide/plan": 16 * 1024,
+                               "/recording/start": 16 * 1024}
 #: every other POST: an e-stop reason (500 characters), a needle cell, or nothing
 DEFAULT_LIMIT = 4 * 1024
 #: methods that carry a body and change state: the operator role is needed

@@ -54,7 +54,7 @@ import os
 import secrets
 import threading
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -104,17 +104,40 @@ class AuditError(DaemonError):
         self.record_id = record_id
 
 
-def resolve_audit_path(ref: str | Path, environ: dict[str, str] | None = None) -> Path:
-    """Where ``[api] audit_log`` points: absolute as written; a relative path goes under
-    ``$STATE_DIRECTORY`` (systemd's ``StateDirectory=``, e.g. /var/lib/oralnav) when set,
-    else under the working directory. It is state, so never next to the config file."""
+def user_state_dir(environ: Mapping[str, str] | None = None) -> Path:
+    """The daemon's state folder outside systemd: ``$XDG_STATE_HOME/oralnav``, else
+    ``~/.local/state/oralnav`` (the XDG base-directory rule for state that outlives a run
+    but is no user document: logs, history)."""
     env = os.environ if environ is None else environ
-    ref = Path(ref).expanduser()
-    if ref.is_absolute():
-        return ref
-    # systemd may list several folders separated by ':'; the first is ours
+    base = env.get("XDG_STATE_HOME", "")
+    root = Path(base) if base and Path(base).is_absolute() else Path.home() / ".local/state"
+    return root / "oralnav"
+
+
+def state_dir(environ: Mapping[str, str] | None = None) -> Path:
+    """Where the daemon keeps its state: ``$STATE_DIRECTORY`` (systemd's
+    ``StateDirectory=``, e.g. /var/lib/oralnav; the first when it lists several) when set,
+    else :func:`user_state_dir`."""
+    env = os.environ if environ is None else environ
     state = env.get("STATE_DIRECTORY", "").split(":")[0]
-    return (Path(state) if state else Path.cwd()) / ref
+    return Path(state) if state else user_state_dir(env)
+
+
+def resolve_audit_path(ref: str | Path, environ: Mapping[str, str] | None = None) -> Path:
+    """Where ``[api] audit_log`` points: absolute as written; a relative path goes under
+    :func:`state_dir`. It is state: never next to the config file, nor wherever the daemon
+    happened to be started."""
+    ref = Path(ref).expanduser()
+    return ref if ref.is_absolute() else state_dir(environ) / ref
+
+
+def ensure_user_state_dir(path: Path, environ: Mapping[str, str] | None = None) -> None:
+    """Create :func:`user_state_dir` (mode 0700, with its parents) when ``path`` lies in
+    it and it does not exist yet: the default folder is the daemon's to make; any other
+    folder (systemd's, or one the configuration names) must exist already."""
+    folder = user_state_dir(environ)
+    if folder in Path(path).parents and not folder.exists():
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
 
 
 def rotated_path(path: str | Path, k: int) -> Path:
@@ -177,6 +200,10 @@ class AuditLog:
         self._seq = itertools.count(1)
         self._incomplete: tuple[str, ...] = ()
         self.torn_at: int | None = None  # byte offset of the torn line found by open()
+        #: called with each record (a dict) once it is written or kept for retry, and
+        #: with each intent written (the session recorder, ``daemon/recording.py``); in
+        #: the writer's thread, outside the log's lock: an observer must be quick
+        self.observers: list[Callable[[dict[str, Any]], None]] = []
 
     @classmethod
     def from_config(cls, api: ApiSection, environ: dict[str, str] | None = None) -> AuditLog:
@@ -196,6 +223,7 @@ class AuditLog:
             if self._fd is not None:
                 return self
             try:
+                ensure_user_state_dir(self.path)
                 self._finish_rotation()
                 fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC,
                              0o600)
@@ -311,6 +339,7 @@ class AuditLog:
                 raise AuditError(f"audit log {str(self.path)!r} cannot be written: "
                                  f"{reason}", record_id=rid if self._written else None
                                  ) from None
+        self._notify(line)
         return rid
 
     def record(self, *, who: str | None, role: str | None, method: str, path: str,
@@ -343,9 +372,25 @@ class AuditLog:
                 reason = exc.strerror or str(exc)
                 log.error("audit record not written (%s), kept for retry: %s",
                           reason, line.decode().rstrip())
-                raise AuditError(f"audit log {str(self.path)!r} cannot be written: "
-                                 f"{reason}") from None
+                failed = AuditError(f"audit log {str(self.path)!r} cannot be written: "
+                                    f"{reason}")
+            else:
+                failed = None
+        self._notify(line)
+        if failed is not None:
+            raise failed
         return json.loads(line)
+
+    def _notify(self, line: bytes) -> None:
+        """Hand the record to the observers; one that fails is logged, never raised."""
+        if not self.observers:
+            return
+        rec = json.loads(line)
+        for observer in list(self.observers):
+            try:
+                observer(dict(rec))
+            except Exception:
+                log.exception("audit observer %r failed", observer)
 
     # -- internals (the caller holds the lock) -----------------------------------------
     def _new_id(self) -> str:

@@ -4,7 +4,9 @@ A :class:`Source` is one stream of synchronised frames and the trackers that rea
 
 - on a hardware cell (:func:`hardware_sources`), the stereo rig's two cameras read as
   pairs (``[stereo]``: by timestamp or trigger counter, ``oralnav.drivers.camera.stereo``)
-  and the endoscope camera, when configured, on its own;
+  and the endoscope camera, when configured, on its own; a monitor camera
+  (``role = "monitor"``: the operative area, for the surgeon) is a source without views:
+  its frames only reach the taps, it is never tracked, and its stall stops nothing;
 - on the simulated cell (:func:`sim_sources`), the cell's renderer, which shows the stereo
   pair and the endoscope at one instant (``SimCameraSet``).
 
@@ -16,6 +18,10 @@ effector fields) or ``T_En_EM`` for the endoscope, stamped with its capture inst
 daemon's monotonic clock (the mean of the views' timestamps). The rates go to the status.
 Then the round's listeners run (navigation, :mod:`oralnav.daemon.navigation_task`) with a
 :class:`TrackedRound` naming what was published: they read the store, never the frames.
+Last, the round's taps see the frames themselves with what was found in them
+(:class:`CapturedRound`: the console's live views, the session recorder); a tap is a plain
+call that keeps references or queues them and returns at once, so nothing a tap does
+(encoding, writing) ever runs on the tracking path.
 
 Faults: a camera that fails to start is a FAULT naming it, and the start is retried with
 back-off, so the cell recovers when the camera returns; one that delivers images of another
@@ -48,8 +54,8 @@ from oralnav.drivers.camera.sim import FrameSource, SimCameraSet
 from oralnav.drivers.camera.stereo import StereoCamera
 from oralnav.drivers.errors import ClockError, DriverError
 
-__all__ = ["FIELD_FRAMES", "CapturePipeline", "Source", "TrackedRound", "hardware_sources",
-           "sim_sources", "stereo_offset"]
+__all__ = ["FIELD_FRAMES", "CapturePipeline", "CapturedRound", "FrameTap", "Source",
+           "TrackedRound", "View", "hardware_sources", "sim_sources", "stereo_offset"]
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +106,25 @@ class TrackedRound:
     poses: Mapping[str, float] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class CapturedRound:
+    """One tracked round as a tap sees it: the source's name, its frames (camera ->
+    ``CameraFrame``; the arrays are shared with tracking: a tap never writes into them),
+    each view's capture instant (s, daemon monotonic clock, offset applied) and what it
+    found (field name -> ``PoseEstimate``: ``T_ref_field``, ``per_camera`` inlier pixels),
+    and the poses published, name -> capture instant."""
+
+    source: str
+    frames: Mapping[str, Any]
+    views: Sequence[tuple[View, float, Mapping[str, Any]]]
+    published: Mapping[str, float]
+
+
+#: A tap of the pipeline: called on the event loop after each round's listeners; it must
+#: return at once (keep references, queue work for a thread) and never raise.
+FrameTap = Callable[[CapturedRound], None]
+
+
 def _view(rig: Rig, fields: Sequence[MarkerField], frame: str,
           suffixes: Mapping[str, str], time_offset: float = 0.0) -> View:
     tracked = [f for f in fields if f.name in suffixes]
@@ -144,6 +169,9 @@ def hardware_sources(cfg: DaemonConfig, stereo_offset: float = 0.0) -> list[Sour
         sources.append(Source("stereo", lambda: StereoCamera(
             camera(left), camera(right), by=s.stereo.by, tolerance=s.stereo.tolerance,
             clock=s.stereo.clock), [_view(cfg.rig, fields, "C", suffixes, stereo_offset)]))
+    for name in sorted(n for n in names if s.cameras[n].role == "monitor"):
+        names.discard(name)  # shown and recorded, never tracked (no views)
+        sources.append(Source(name, lambda n=name: _Single(camera(n)), []))
     endo = cfg.endoscope_rig
     if endo is not None and "effector" in cfg.fields:
         for name in sorted(names & set(endo.names)):
@@ -177,10 +205,11 @@ class CapturePipeline:
     """See the module docstring. ``listeners`` run after each round, in order."""
 
     def __init__(self, core: DaemonCore, sources: Sequence[Source],
-                 listeners: Sequence[Listener] = ()) -> None:
+                 listeners: Sequence[Listener] = (), taps: Sequence[FrameTap] = ()) -> None:
         self.core = core
         self.sources = list(sources)
         self.listeners = list(listeners)
+        self.taps = list(taps)
         self.frames: dict[str, int] = {}
         self._t0: dict[str, float] = {}
 
@@ -253,6 +282,9 @@ class CapturePipeline:
         """One round: ``frames`` (``{camera: CameraFrame}``, one instant) tracked and
         published, then the listeners told. None when tracking failed (a FAULT)."""
         core, name = self.core, source.name
+        if not source.views:  # a monitor camera: for the taps only (module docstring)
+            self._tap(CapturedRound(name, frames, [], {}))
+            return TrackedRound(name, {})
         arrived = core.clock()
         for cam, f in frames.items():
             core.camera_frame(cam, f.counter)
@@ -285,7 +317,15 @@ class CapturePipeline:
                 log.exception("%s failed", getattr(listener, "__qualname__", listener))
                 core.supervisor.fault(core.clock(), "navigation",
                                       f"{type(exc).__name__}: {exc}")
+        self._tap(CapturedRound(name, frames, found, published))
         return rnd
+
+    def _tap(self, captured: CapturedRound) -> None:
+        for tap in self.taps:
+            try:
+                tap(captured)
+            except Exception:  # a viewer or recorder never stops tracking
+                log.exception("frame tap %s failed", getattr(tap, "__qualname__", tap))
 
 
 def _track(views: Sequence[View], frames: Mapping[str, Any]

@@ -28,6 +28,7 @@ hands each piece what it must know of it.
 
 from __future__ import annotations
 
+import datetime
 import logging
 import math
 import threading
@@ -58,6 +59,27 @@ log = logging.getLogger(__name__)
 SUPERVISE_HZ = 50.0
 
 
+def _iso_utc(unix_s: float) -> str:
+    """``unix_s`` (s since the epoch) as ISO 8601 UTC to the millisecond, as the audit log
+    writes its times."""
+    return datetime.datetime.fromtimestamp(unix_s, datetime.UTC).isoformat(
+        timespec="milliseconds").replace("+00:00", "Z")
+
+
+def _add_utc(safety: dict[str, Any], now: float, wall: float) -> None:
+    """Beside each monotonic time of a safety snapshot (``since``, each reason's and
+    transition's ``time``, s on the daemon's clock), the same instant in UTC (``*_utc``),
+    so that /status lines up with the audit log. ``now`` and ``wall``: one instant on both
+    clocks."""
+    def utc(t: Any) -> str | None:
+        return _iso_utc(wall - (now - t)) if isinstance(t, int | float) and \
+            math.isfinite(t) else None
+
+    safety["since_utc"] = utc(safety.get("since"))
+    for rec in (*safety.get("reasons", ()), *safety.get("history", ())):
+        rec["time_utc"] = utc(rec.get("time"))
+
+
 class DaemonCore:
     """See the module docstring. ``clock`` is the daemon's monotonic clock (s), the one the
     control process and the pose timestamps use."""
@@ -73,6 +95,12 @@ class DaemonCore:
         self.supervisor.stop.add_handler(self._stop_robot, name="control loop")
         self._lock = threading.Lock()     # guards the targets
         self._targets: list[SutureTarget] = []
+        #: the surgeon's current suture target (``select_target``) and how many selections
+        #: were made: the navigation applies each new one once (``daemon/navigation_task.py``)
+        self.selected_target: str | None = None
+        self.selections = 0
+        #: the cell's planned suture targets (its cell file), offered to the operator
+        self._planned: list[SutureTarget] = []
         #: the newest tracked poses, the tracking rates and which poses are watched
         self.pose_store = PoseStore(watchdogs, clock, pinned=self._pinned_poses)
         #: each tracked round's capture, arrival and publication (``daemon/latency.py``)
@@ -105,6 +133,9 @@ class DaemonCore:
         #: the temporal calibration (``TemporalSession``) when the service built one; each
         #: supervision tick drives its excitation
         self.temporal_session: Any = None
+        #: the session recorder (``daemon/recording.py``) when the service attached one;
+        #: ``/recording`` delegates to it
+        self.recorder: Any = None
 
     # -- the latched stop's handler (sync, never blocks) ---------------------------------
     def _stop_robot(self, record: Any) -> None:
@@ -259,12 +290,17 @@ class DaemonCore:
             audit = {"path": str(self.audit.path), "incomplete": self.audit.incomplete,
                      "pending": self.audit.pending}
         moving = self.supervisor.state in (SafetyState.RUNNING, SafetyState.PAUSED)
-        return jsonable({"safety": sup, "control_loop": loop, "inputs": inputs,
+        now, wall = self.clock(), time.time()
+        _add_utc(sup, now, wall)
+        return jsonable({"safety": sup,
+                         "clock": {"monotonic_s": now, "utc": _iso_utc(wall)},
+                         "control_loop": loop, "inputs": inputs,
                          "activity": self.activity if moving else None,
                          "audit": audit, "latency_ms": self.latency_ms(),
                          "rates_hz": rates,
                          "uptime_s": self.clock() - self._started,
                          "procedure": dict(self.procedure_info),
+                         "selected_target": self.selected_target,
                          "guidance": self.guide_session.status(st)})
 
     def latency_ms(self) -> dict[str, Any] | None:
@@ -388,7 +424,32 @@ class DaemonCore:
                              "resume it or abort it first (POST /procedure/abort)")
         with self._lock:
             self._targets = list(targets)
+            if self.selected_target not in {t.name for t in targets}:
+                self.selected_target = None  # a choice among targets that are gone
         log.info("%d suture target(s) set by %s", len(targets), who)
+
+    def planned_targets(self) -> list[SutureTarget]:
+        """The cell's planned suture targets (``set_planned``), not registered yet."""
+        return list(self._planned)
+
+    def set_planned(self, targets_OM: dict[str, Any]) -> None:
+        """The cell file's planned targets: name -> (3,) point in ``OM`` (m)."""
+        self._planned = [SutureTarget(name=n, p_OM=tuple(float(x) for x in p))
+                         for n, p in targets_OM.items()]
+
+    def select_target(self, name: str, who: str) -> None:
+        """The surgeon chooses the current suture target (the seed's "select the current
+        suture target"): a running procedure goes there next, then on through the targets
+        not yet visited; before a start it is the first one visited. Any state allows it
+        (it moves nothing by itself). ``StateError`` when no target has that name."""
+        with self._lock:
+            names = [t.name for t in self._targets]
+            if name not in names:
+                raise StateError(f"cannot select {name!r}: no such suture target (registered: "
+                                 f"{', '.join(names) or 'none, POST /targets first'})")
+            self.selected_target = name
+            self.selections += 1
+        log.info("suture target %s selected by %s", name, who)
 
     # -- motion (procedure task) ---------------------------------------------------------
     def set_goal(self, T_B_tcp: np.ndarray, t_pose: float, *,
@@ -516,3 +577,29 @@ class DaemonCore:
 
     def needle_step(self, step: str, who: str) -> dict[str, Any]:
         return jsonable(self.needle_session.run_step(step, who))
+
+    # -- session recording (daemon/recording.py, docs/recording.md) ---------------------
+    def _recorder(self) -> Any:
+        if self.recorder is None:
+            raise StateError("this daemon has no session recorder")
+        return self.recorder
+
+    def recording(self) -> dict[str, Any]:
+        """``GET /recording``: the recorder's state and the latest recording's figures."""
+        return jsonable(self._recorder().status())
+
+    def start_recording(self, body: Any, who: str) -> dict[str, Any]:
+        """Start recording (``RecordingStartBody``); blocking (it creates the file: the
+        API calls it in a worker thread). StateError while a recording runs;
+        ``RecordingError`` (a ValueError) for a file that cannot be created."""
+        from oralnav.daemon.recording import RecordingOptions
+
+        options = RecordingOptions(body.path, every=body.every, images=body.images,
+                                   compression=body.compression,
+                                   jpeg_quality=body.jpeg_quality,
+                                   queue_rounds=body.queue_rounds)
+        return jsonable(self._recorder().start(options, who))
+
+    def stop_recording(self, who: str) -> dict[str, Any]:
+        """End the recording and close its file (blocking: waits for the writer)."""
+        return jsonable(self._recorder().stop(who))

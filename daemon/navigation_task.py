@@ -138,6 +138,8 @@ class NavigationTask:
         self.no_calibration = no_calibration
         self.navigator: TwoStageNavigator | None = None
         self.tre_mm: dict[str, float] = {}
+        #: the core's selection count last applied to the navigator (``select_target``)
+        self._selections = 0
         #: the moving pose last stepped on: (name, capture instant s); each capture of
         #: it makes one step (the navigator's settle count is in frames)
         self._stepped: tuple[str, float] | None = None
@@ -189,10 +191,12 @@ class NavigationTask:
         if self.navigator is None:
             targets = {t.name: np.array(t.p_OM) for t in core.targets()}
             self.navigator = TwoStageNavigator(self.calibration, self.entry, targets)
+            self._selections = 0  # a selection made before the start applies to this one
             self.tre_mm = {}
             core.procedure_info.clear()
             self.progress("stage approach: extra-oral, robot marker (eq. 5)")
         nav = self.navigator
+        self._apply_selection(nav)
         moving = MOVING_POSE.get(nav.stage)
         rec = core.pose(moving) if moving is not None else None
         opener = core.pose(OPENER_POSE)
@@ -216,7 +220,7 @@ class NavigationTask:
         info = core.procedure_info
         info.update(stage=step.stage, error_mm=step.error_m * 1e3,
                     error_deg=math.degrees(step.error_rad), target=step.target,
-                    tre_mm=dict(self.tre_mm))
+                    remaining=nav.remaining, tre_mm=dict(self.tre_mm))
         if step.reached:
             await self._reached(step.reached, stamp)
         if step.stage != before:
@@ -235,6 +239,17 @@ class NavigationTask:
             # the goal is as old as the oldest pose behind it
             core.set_goal(goal, min(stamp, opener["stamp"]), near_point=near,
                           wrist=np.zeros(4))
+
+    def _apply_selection(self, nav: TwoStageNavigator) -> None:
+        """The surgeon's newest target choice, once: the navigator goes there next."""
+        core = self.core
+        if core.selections == self._selections or core.selected_target is None:
+            return
+        self._selections = core.selections
+        if core.selected_target in nav.targets_OM:
+            nav.select(core.selected_target)
+            core.procedure_info["target"] = nav.current_target
+            self.progress(f"target {core.selected_target} selected: visited next")
 
     def _paired(self, rnd: TrackedRound, moving: str, rec: Mapping[str, Any],
                 opener: Mapping[str, Any]) -> bool:

@@ -87,6 +87,13 @@ class TargetsBody(_Body):
         return v
 
 
+class SelectTargetBody(_Body):
+    """``POST /targets/select``: the surgeon's current suture target, by name."""
+
+    name: Annotated[str, StringConstraints(min_length=1, max_length=64,
+                                           pattern=r"^[A-Za-z0-9_.-]+$")]
+
+
 class EstopBody(_Body):
     """``POST /estop`` (the body is optional)."""
 
@@ -153,6 +160,32 @@ class TemporalCalibrationBody(_Body):
     period_s: Annotated[Float, Field(ge=1.0, le=20.0)] = 4.0
     duration_s: Annotated[Float, Field(ge=2.0, le=120.0)] = 24.0
     search_ms: Annotated[Float, Field(ge=10.0, le=500.0)] = 200.0
+
+
+class RecordingStartBody(_Body):
+    """``POST /recording/start`` (docs/recording.md): record to ``path`` (an ``.mcap``
+    file that does not exist yet; a relative one goes where a relative audit log goes, the
+    daemon's state folder), the frames of every ``every``-th tracked round as ``images`` (``raw``:
+    lossless RawImage; ``png``: lossless, about 10 times the CPU; ``jpeg`` at
+    ``jpeg_quality``; ``none``), MCAP chunks compressed with ``compression``, at most
+    ``queue_rounds`` rounds of frames waiting for the disk (beyond, frames are dropped and
+    counted; poses never are)."""
+
+    path: Annotated[str, StringConstraints(min_length=1, max_length=MAX_PATH_CHARS)]
+    every: Annotated[int, Field(ge=1, le=10_000, strict=True)] = 1
+    images: Literal["raw", "png", "jpeg", "none"] = "raw"
+    compression: Literal["zstd", "lz4", "none"] = "none"
+    jpeg_quality: Annotated[int, Field(ge=1, le=100, strict=True)] = 90
+    queue_rounds: Annotated[int, Field(ge=1, le=1024, strict=True)] = 8
+
+    @field_validator("path")
+    @classmethod
+    def _mcap_file(cls, v: str) -> str:
+        if "\0" in v:
+            raise ValueError("a path cannot hold a NUL character")
+        if not v.lower().endswith(".mcap"):
+            raise ValueError("the recording must be an .mcap file")
+        return v
 
 
 # -- error answers, as the OpenAPI schema declares them -------------------------------------

@@ -13,6 +13,10 @@ threads):
 
 - ``capture``: the cameras (or the simulated cell's renderer) read, tracked and published
   into the pose store, each round followed by a navigation step (``build_navigation``).
+- ``igtl``: with ``[igtl]``, the OpenIGTLink server for 3D Slicer (``daemon/igtl.py``):
+  poses out, suture targets in; its sockets in a thread of their own.
+- ``recorder``: the session recorder's poll (``daemon/recording.py``, 10 Hz): safety
+  transitions and arm samples for a running recording; its writer is a thread of its own.
 
 The control loop runs in its own process (``ControlProcess``); its drivers are built there.
 """
@@ -44,6 +48,7 @@ from oralnav.daemon.audit import AuditLog
 from oralnav.daemon.auth import TokenStore
 from oralnav.daemon.core import DaemonCore
 from oralnav.daemon.heartbeat import LoopHeartbeat
+from oralnav.daemon.live_views import LiveViews
 from oralnav.drivers.io import open_inputs
 from oralnav.realtime.control_loop import LoopSettings
 from oralnav.realtime.control_process import ControlProcess, DriverSpec, ProcessSpec
@@ -115,10 +120,12 @@ def build_control(cfg: DaemonConfig, home: np.ndarray | None = None) -> ControlP
 
 
 async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
-                      on_ready: Callable[..., Any] | None = None) -> int:
+                      on_ready: Callable[..., Any] | None = None,
+                      record: Any = None) -> int:
     """Run the daemon until SIGTERM / SIGINT (or until the coroutine that
     ``on_ready(core, port, tokens, nav)`` returns, if any, finishes). Returns the exit
-    status."""
+    status. ``record``: ``RecordingOptions`` to record the session from the start
+    (``oralnavd --record``)."""
     s = cfg.settings
     # the API's port first: one taken by another daemon is one clear error before the
     # control process, the cameras or the renderer start (ConfigError: exit 2)
@@ -135,7 +142,7 @@ async def run_service(cfg: DaemonConfig, api_port: int | None = None, *,
                     s.api.host, port_wanted)
     cleanup: list[Callable[[], None]] = [api_sock.close]
     try:
-        return await _run(cfg, api_port, api_sock, tls, cleanup, on_ready)
+        return await _run(cfg, api_port, api_sock, tls, cleanup, on_ready, record=record)
     finally:
         for fn in reversed(cleanup):
             fn()
@@ -159,7 +166,7 @@ def tls_files(cfg: DaemonConfig) -> tuple[str, str] | None:
 
 async def _run(cfg: DaemonConfig, api_port: int | None, api_sock: Any,
                tls: tuple[str, str] | None, cleanup: list[Callable[[], None]],
-               on_ready: Callable[..., Any] | None) -> int:
+               on_ready: Callable[..., Any] | None, record: Any = None) -> int:
     """:func:`run_service` once the API's socket is bound."""
     from oralnav.daemon.systemd import Notifier, watchdog_task
 
@@ -172,9 +179,15 @@ async def _run(cfg: DaemonConfig, api_port: int | None, api_sock: Any,
     core = DaemonCore(control, WatchdogSet.from_settings(s.safety, 1.0 / s.control.rate_hz),
                       inputs=inputs)
     core.audit = audit  # its incomplete and pending records show in GET /status
+    igtl = igtl_server(cfg, core, cleanup)  # bound now: a taken port fails at start
+    views = LiveViews(s.api.views_max_hz, clock=core.clock)
     app = build_app(core, tokens, audit, telemetry_hz=s.api.telemetry_hz,
-                    auth_limiter=FailureLimiter(AuthLimits.from_config(s.api)))
+                    auth_limiter=FailureLimiter(AuthLimits.from_config(s.api)), views=views)
     capture, nav, cell = build_navigation(cfg, core)
+    capture.taps.append(views.tap)  # the console's live views see every tracked round
+    recorder = attach_recorder(cfg, core, capture, audit, record)
+    if cfg.cell is not None:  # the cell file's planned targets, offered in the console
+        core.set_planned(dict(cfg.cell.targets_OM))
     if cell is not None:
         # before the control loop starts: preparing is seconds of work on every core
         _log("preparing the simulated cell (camera ray maps, textures)...")
@@ -194,12 +207,18 @@ async def _run(cfg: DaemonConfig, api_port: int | None, api_sock: Any,
         async with anyio.create_task_group() as tg:
             await tg.start(core.supervise)
             await tg.start(capture.run)
+            tg.start_soon(recorder.run)
+            if igtl is not None:
+                await tg.start(igtl.run)
+                _log(f"serving OpenIGTLink (3D Slicer) on {igtl.host}:{igtl.port}: poses at "
+                     f"{igtl.rate_hz:g} Hz, suture targets "
+                     + ("in" if igtl.accept_targets else "not accepted"))
             port = await tg.start(partial(serve, allow_remote=s.api.allow_remote,
                                           sock=api_sock, tls=tls), app,
                                   s.api.host, api_port or s.api.port)
             scheme = "https" if tls else "http"
             _log(f"serving the operator API on {scheme}://{s.api.host}:{port} "
-                 f"(OpenAPI at /docs); audit log {audit.path}")
+                 f"(console at /, OpenAPI at /docs); audit log {audit.path}")
             # fed only while the control process is alive and its loop beats
             tg.start_soon(watchdog_task, notifier, core.health)
             notifier.ready(status=f"API on {s.api.host}:{port}")
@@ -223,12 +242,35 @@ async def _run(cfg: DaemonConfig, api_port: int | None, api_sock: Any,
     finally:
         notifier.stopping(status="stopping: robot stopped, shutting the control loop down")
         with anyio.CancelScope(shield=True):
+            # before the control process goes: the last transitions and arm samples
+            await anyio.to_thread.run_sync(recorder.close)
             heartbeat.close()
             await control.close()
             await inputs.close()
         audit.close()
     _log("stopped")
     return 0
+
+
+def igtl_server(cfg: DaemonConfig, core: DaemonCore,
+                cleanup: list[Callable[[], None]]) -> Any:
+    """The OpenIGTLink server ``[igtl]`` asks for (``daemon/igtl.py``), its port bound and
+    its closing added to ``cleanup``; None when the section is absent or not enabled. A
+    port that cannot be bound is a ConfigError naming ``[igtl] port``."""
+    section = cfg.settings.igtl
+    if section is None or not section.enabled:
+        return None
+    from oralnav.daemon.igtl import IgtlServer
+
+    server = IgtlServer.from_config(core, section)
+    try:
+        server.bind()
+    except OSError as exc:
+        raise ConfigError(cfg.path, "igtl.port", f"{section.host}:{section.port}: "
+                          f"{exc.strerror or exc} (another OpenIGTLink server running, "
+                          "3D Slicer's own server connector among them?)") from None
+    cleanup.append(server.sockets.close)
+    return server
 
 
 def build_navigation(cfg: DaemonConfig, core: DaemonCore) -> tuple[Any, Any, Any]:
@@ -300,6 +342,27 @@ def build_navigation(cfg: DaemonConfig, core: DaemonCore) -> tuple[Any, Any, Any
     if refusal:
         _log(f"navigation unavailable on this cell: {refusal}")
     return capture, nav, cell
+
+
+def attach_recorder(cfg: DaemonConfig, core: DaemonCore, capture: Any, audit: AuditLog,
+                    record: Any = None) -> Any:
+    """The session recorder (``daemon/recording.py``) attached to the capture pipeline
+    (a tap), the audit log (an observer) and the core (``/recording``); recording at once
+    with ``record`` (``RecordingOptions``). A recording that cannot start is logged: the
+    daemon runs without it."""
+    from oralnav.daemon.recording import RecordingError, SessionRecorder
+
+    recorder = SessionRecorder(core, capture.sources, config_path=cfg.path)
+    capture.taps.append(recorder.tap)
+    audit.observers.append(recorder.on_audit)
+    core.recorder = recorder
+    if record is not None:
+        try:
+            recorder.start(record, "oralnavd --record")
+            _log(f"recording the session to {record.path}")
+        except RecordingError as exc:
+            _log(f"not recording: {exc}")
+    return recorder
 
 
 def keep_off_control_cpu(cpu: int | None) -> None:

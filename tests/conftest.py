@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import os
+import shutil
+import tempfile
 import threading
 import time
 
@@ -40,3 +43,19 @@ def pytest_collection_modifyitems(items):
     for item in items:
         if item.get_closest_marker("asyncio") and "no_leaked_tasks" not in item.fixturenames:
             item.fixturenames.append("no_leaked_tasks")
+
+
+_STATE_HOME: str | None = None
+
+
+def pytest_configure(config):
+    """Daemons the tests start keep their default state (the audit log) in a folder of
+    this run, never in the user's ~/.local/state/oralnav (``daemon/audit.py``)."""
+    global _STATE_HOME
+    _STATE_HOME = tempfile.mkdtemp(prefix="oralnav-test-state-")
+    os.environ["XDG_STATE_HOME"] = _STATE_HOME
+
+
+def pytest_unconfigure(config):
+    if _STATE_HOME:
+        shutil.rmtree(_STATE_HOME, ignore_errors=True)

@@ -81,6 +81,25 @@ class TwoStageNavigator:
     def current_target(self) -> str | None:
         return self._order[self._index] if self._index < len(self._order) else None
 
+    @property
+    def remaining(self) -> list[str]:
+        """The targets still to visit, the current one first."""
+        return self._order[self._index:]
+
+    def select(self, name: str) -> None:
+        """Make ``name`` the current target (the surgeon's choice): it is visited next,
+        then the targets not yet visited in their order. A visited target may be chosen
+        again. Before the targets stage it is the first one visited. ``KeyError`` for a
+        name that is not a target; nothing changes after ``"done"``."""
+        if name not in self.targets_OM:
+            raise KeyError(f"no suture target {name!r} (targets: "
+                           f"{', '.join(self.targets_OM)})")
+        if self.stage == "done":
+            return
+        rest = [t for t in self._order[self._index:] if t != name]
+        self._order = self._order[:self._index] + [name] + rest
+        self._ok = 0  # settling on the previous target counts nothing toward this one
+
     def update(self, T_C_RM: np.ndarray | None, T_C_OM: np.ndarray | None,
                T_En_EM: np.ndarray | None, T_B_tcp: np.ndarray) -> NavStep:
         """One navigation step from the poses of one capture (None: not seen) and the TCP

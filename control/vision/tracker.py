@@ -302,6 +302,21 @@ class Tracker:
         """Forget every field's last pose: the next frame searches whole images."""
         self._state = {n: _FieldState() for n in self.fields}
 
+    def restore(self, last: Mapping[str, np.ndarray],
+                before: Mapping[str, np.ndarray]) -> None:
+        """Remember what :meth:`track` would after a frame that found ``last`` following
+        one that found ``before`` (field -> ``T_ref_field``, 4x4; a field absent was not
+        found). A replay that skips frames (a decimated recording) or starts mid-video
+        then predicts exactly as the live tracker did, from the poses it reported."""
+        state = {}
+        for name in self.fields:
+            T, T_prev = last.get(name), before.get(name)
+            # a field lost in the last frame is searched afresh, whatever came before
+            state[name] = _FieldState() if T is None else _FieldState(
+                np.array(T, dtype=float).reshape(4, 4),
+                None if T_prev is None else np.array(T_prev, dtype=float).reshape(4, 4))
+        self._state = state
+
     # -- the frame ---------------------------------------------------------------------
     def _check_images(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         if not isinstance(images, Mapping) or not images:

@@ -24,6 +24,7 @@ __all__ = ["BACKENDS", "Camera", "CameraFrame", "camera_class", "open_camera"]
 #: Backend name -> ``"module:Class"``; the module is imported on first use.
 BACKENDS: dict[str, str] = {
     "aravis": "oralnav.drivers.camera.aravis:AravisCamera",
+    "mcap": "oralnav.drivers.camera.mcap_replay:McapCamera",
     "replay": "oralnav.drivers.camera.replay:ReplayCamera",
     "sim": "oralnav.drivers.camera.sim:SimCamera",
     "v4l2": "oralnav.drivers.camera.v4l2:V4L2Camera",

@@ -105,3 +105,52 @@ def test_place_bad_scene_exits_2(tmp_path, capsys):
     scene.write_text(text)
     assert cli.run(["plan", "place", "--scene", str(scene), "--json"]) == 2
     assert "outside the model" in _json(capsys)["error"]
+
+
+@pytest.mark.parametrize("closed", [False, True])
+def test_mouth_writes_the_parametric_cavity_as_stl(tmp_path, capsys, closed):
+    """issue 33 item 6: `plan mouth` writes the parametric oral cavity as an STL (in mm,
+    creating the folder) that trimesh loads with the model's faces and size; it is
+    watertight exactly when the model is (`--closed-front`), and `--missing` leaves a
+    crown out."""
+    import numpy as np
+    import trimesh
+
+    out = tmp_path / "out" / "mouth.stl"
+    argv = ["plan", "mouth", "--out", str(out), "--resolution", "0.25", "--json"]
+    if closed:
+        argv += ["--closed-front", "--missing", "lower_left_molar1"]
+    assert cli.run(argv) == 0
+    doc = _json(capsys)
+    model = oral_cavity_mesh(resolution=0.25, closed_front=closed,
+                             missing=("lower_left_molar1",) if closed else ())
+    mesh = trimesh.load_mesh(out)
+    assert len(mesh.faces) == len(model.faces) == doc["faces"]
+    np.testing.assert_allclose(mesh.extents, [55.0, 45.0, 90.0], atol=1e-3)  # mm
+    assert mesh.is_watertight == closed == doc["watertight"]
+    assert doc["teeth"] == (27 if closed else 28) and doc["units"] == "mm"
+
+
+@pytest.mark.parametrize("args, option", [
+    (["--width-mm", "10"], "--width-mm"),
+    (["--depth-mm", "400"], "--depth-mm"),
+    (["--resolution", "0"], "--resolution"),
+    (["--missing", "wisdom_tooth"], "--missing"),
+    (["--no-teeth", "--missing", "lower_left_molar1"], "--missing"),
+])
+def test_mouth_bad_option_exits_2_naming_it(tmp_path, capsys, args, option):
+    """issue 33 item 6: a size outside the model's 20-300 mm, a non-positive resolution
+    or an unknown tooth exits 2 naming the option, and no file is written."""
+    out = tmp_path / "mouth.stl"
+    assert cli.run(["plan", "mouth", "--out", str(out), *args, "--json"]) == 2
+    doc = _json(capsys)
+    assert doc["exit"] == 2 and doc["error"].startswith(option), doc
+    assert not out.exists()
+
+
+def test_mouth_refuses_an_unknown_mesh_suffix(tmp_path, capsys):
+    """issue 33 item 6: the suffix picks the format; another exits 2 naming --out and
+    creates no folder."""
+    out = tmp_path / "new" / "mouth.xyz"
+    assert cli.run(["plan", "mouth", "--out", str(out), "--json"]) == 2
+    assert _json(capsys)["error"].startswith("--out") and not out.parent.exists()

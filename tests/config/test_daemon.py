@@ -251,7 +251,12 @@ BROKEN = {
                                                  "[arm] backend = 'ur'")),
     "camera_not_in_the_rigs": (HW + '\n[cameras.middle]\nbackend = "v4l2"\n'
                                'device = "/dev/video0"\n', "[cameras] middle:",
-                               ("no camera 'middle' in the rigs", "left, right")),
+                               ("no camera 'middle' in the rigs", "left, right",
+                                'role = "monitor"')),
+    "monitor_camera_with_a_rig_name": (HW + '\n[cameras.left]\nbackend = "v4l2"\n'
+                                       'device = "/dev/video0"\nrole = "monitor"\n',
+                                       "[cameras.left] role:",
+                                       ("a camera of the rigs",)),
     "camera_option_unknown": (HW + '\n[cameras.endoscope]\nbackend = "v4l2"\n'
                               'device = "/dev/video0"\nzoom = 3\n', "[cameras] endoscope:",
                               ("the v4l2 backend does not take", "zoom")),

@@ -135,3 +135,31 @@ def test_loader_errors_are_config_errors(tmp_path):
     path = write_file(tmp_path, "calibration.txt", "1 2\n")
     with pytest.raises(ConfigError):
         load_calibration_txt(path, (640, 480))
+
+
+def test_written_tables_and_calibrations_read_back(tmp_path):
+    """rigid-body files (issue 33 item 6): `save_rigid_body` writes a 16-column table (in
+    mm, a comment line first) and `save_calibration_txt` a 4-line calibration that the
+    loaders read back as the same body and camera."""
+    from oralnav.config.rigid_bodies import save_calibration_txt, save_rigid_body
+    from oralnav.control.vision.camera import CameraModel
+    from oralnav.control.vision.rigid_body import RigidBody
+
+    h = 0.00725
+    square = np.array([[-h, -h, 0.0], [h, -h, 0.0], [h, h, 0.0], [-h, h, 0.0]])
+    body = RigidBody("plate", "DICT_ARUCO_ORIGINAL",
+                     {860: square, 759: square + [0.0175, 0.0, 0.001]})
+    path = save_rigid_body(body, tmp_path / "plate.txt")
+    lines = path.read_text().splitlines()
+    assert lines[0].startswith("# rigid body 'plate'") and len(lines[1].split()) == 16
+    back = load_rigid_body(path)
+    assert back.ids == body.ids and back.name == "plate"
+    for tid in body.ids:
+        np.testing.assert_allclose(back.tags[tid], body.tags[tid], atol=1e-12)
+    cam = CameraModel("cam", (640, 480), np.array([[560.0, 0, 320.5], [0, 561.0, 240.0],
+                                                   [0, 0, 1]]), np.array([0.1, -0.02, 0, 0, 0]))
+    cal = save_calibration_txt(cam, tmp_path / "calibration.txt")
+    assert len(cal.read_text().splitlines()) == 4
+    again = load_calibration_txt(cal, (640, 480))
+    np.testing.assert_array_equal(again.K, cam.K)
+    np.testing.assert_array_equal(again.dist, cam.dist)

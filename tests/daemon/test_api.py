@@ -84,6 +84,14 @@ class FakeOps:
     def targets(self) -> list[SutureTarget]:
         return list(self.target_list)
 
+    def planned_targets(self) -> list[SutureTarget]:
+        return [SutureTarget(name="planned_1", p_OM=(0.02, 0.0, 0.0))]
+
+    def select_target(self, name: str, who: str) -> None:
+        if name not in {t.name for t in self.target_list}:
+            raise StateError(f"cannot select {name!r}: no such suture target")
+        self.calls.append(("select_target", name, who))
+
     def set_targets(self, targets: list[SutureTarget], who: str) -> None:
         if self.state == "RUNNING":
             raise StateError("targets cannot change while RUNNING")
@@ -170,10 +178,29 @@ class FakeOps:
             doc["samples"] = {"t_cam": [], "p_C": [], "t_arm": [], "p_B": []}
         return doc
 
+    # session recording (issue 33 item 4): the recorder's own tests are test_recording.py
+    recording_state = "idle"
+
+    def recording(self) -> dict[str, Any]:
+        return {"state": self.recording_state, "path": None, "error": None}
+
+    def start_recording(self, body: Any, who: str) -> dict[str, Any]:
+        if self.recording_state == "recording":
+            raise StateError("already recording")
+        self.calls.append(("start_recording", body.path, who))
+        self.recording_state = "recording"
+        return self.recording()
+
+    def stop_recording(self, who: str) -> dict[str, Any]:
+        self.calls.append(("stop_recording", who))
+        self.recording_state = "stopped"
+        return self.recording()
+
 
 POSTS = ["/estop", "/reset", "/procedure/start", "/procedure/pause", "/procedure/resume",
          "/procedure/abort", "/targets", "/guide/plan", "/guide/start", "/guide/stop",
-         "/needle/cell", "/needle/NG", "/recover/effector", "/calibration/temporal"]
+         "/needle/cell", "/needle/NG", "/recover/effector", "/calibration/temporal",
+         "/targets/select", "/recording/start", "/recording/stop"]
 GOOD_TARGETS = {"targets": [{"name": "s1", "p_OM": [0.01, 0.02, 0.0]},
                             {"name": "s2", "p_OM": [0.0, -0.01, 0.005], "n_OM": [0, 0, 2]}]}
 EYE4 = np.eye(4).tolist()
@@ -233,7 +260,9 @@ def audit_results(rig) -> list[dict]:
 
 def body_for(path: str) -> dict | None:
     return {"/targets": GOOD_TARGETS, "/guide/plan": GOOD_PLAN,
-            "/needle/cell": {"trial": 3}, "/calibration/temporal": {}}.get(path)
+            "/needle/cell": {"trial": 3}, "/calibration/temporal": {},
+            "/targets/select": {"name": "t0"},
+            "/recording/start": {"path": "session.mcap"}}.get(path)
 
 
 # -- roles -------------------------------------------------------------------------------
@@ -244,7 +273,7 @@ async def test_health_needs_no_token(client):
 
 
 @pytest.mark.parametrize("path", ["/status", "/poses", "/targets", "/guide", "/needle",
-                                  "/calibration/temporal"])
+                                  "/calibration/temporal", "/recording"])
 async def test_reads_need_a_valid_token(client, rig, path):
     """issue 4 REST: GETs answer 401 with WWW-Authenticate: Bearer without a token or with
     an unknown one, and 200 for an observer."""
@@ -272,7 +301,8 @@ def test_every_post_route_is_covered(rig):
     posts = {r.path for r in rig.app.routes if "POST" in getattr(r, "methods", ())}
     assert posts == {"/estop", "/reset", "/procedure/{action}", "/targets", "/guide/plan",
                      "/guide/start", "/guide/stop", "/needle/cell", "/needle/{step}",
-                     "/recover/{device}", "/calibration/temporal"}
+                     "/recover/{device}", "/calibration/temporal", "/targets/select",
+                     "/recording/start", "/recording/stop"}
 
 
 @pytest.mark.parametrize("path", POSTS)
@@ -803,6 +833,19 @@ async def test_openapi_declares_the_bearer_scheme(client):
             "/procedure/{action}"} <= set(spec["paths"])
     assert spec["paths"]["/reset"]["post"]["security"]
     assert (await client.get("/docs")).status_code == 200
+
+
+async def test_docs_load_nothing_from_outside_the_daemon(client):
+    """Issue 33 item 6: /docs works on an offline operator station: Swagger UI's script,
+    style and icon come from the daemon itself (the package ``fastapi-swagger`` ships
+    them), and the page names no other host."""
+    page = (await client.get("/docs")).text
+    assert "://" not in page.replace("http://oralnav", "")
+    for asset in ("swagger-ui-bundle.js", "swagger-ui.css", "favicon-32x32.png"):
+        assert f"/docs/assets/{asset}" in page
+        r = await client.get(f"/docs/assets/{asset}")
+        assert r.status_code == 200 and len(r.content) > 500, asset
+    assert (await client.get("/redoc")).status_code == 404  # it would load from a CDN
 
 
 def test_jsonable_makes_plain_json():

@@ -197,13 +197,25 @@ def test_short_write_is_closed_by_the_next_record(tmp_path, monkeypatch):
 
 
 def test_audit_path_is_state_not_config(tmp_path, monkeypatch):
-    """issue 4 audit (config): a relative audit_log goes under $STATE_DIRECTORY (systemd)
-    or else the working directory; an absolute one is kept."""
+    """issue 4 audit (config), issue 33 item 6: a relative audit_log goes under
+    $STATE_DIRECTORY (systemd), else the user's state folder ($XDG_STATE_HOME/oralnav,
+    else ~/.local/state/oralnav), never the working directory; an absolute one is kept.
+    The default folder is created (0700) when the log is opened; no other is."""
     assert resolve_audit_path("/var/log/a.jsonl", {}) == Path("/var/log/a.jsonl")
     assert resolve_audit_path("a.jsonl", {"STATE_DIRECTORY": "/var/lib/oralnav:/x"}) == \
         Path("/var/lib/oralnav/a.jsonl")
     monkeypatch.chdir(tmp_path)
-    assert resolve_audit_path("a.jsonl", {}) == tmp_path / "a.jsonl"
+    assert resolve_audit_path("a.jsonl", {"XDG_STATE_HOME": "/st"}) == \
+        Path("/st/oralnav/a.jsonl")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.delenv("XDG_STATE_HOME", raising=False)
+    monkeypatch.delenv("STATE_DIRECTORY", raising=False)
+    path = resolve_audit_path("a.jsonl")
+    assert path == tmp_path / "home/.local/state/oralnav/a.jsonl"
+    AuditLog(path).open().close()
+    assert path.exists() and (path.parent.stat().st_mode & 0o777) == 0o700
+    with pytest.raises(AuditError, match="cannot open audit log"):
+        AuditLog(tmp_path / "elsewhere/a.jsonl").open()  # not ours to create
 
 
 # -- issue 30: write-ahead, a torn last line, rotation ------------------------------------

@@ -211,3 +211,50 @@ async def test_reset_after_a_stop_mid_procedure_brings_ready_and_keeps_it(rig) -
     await supervise_until(core, lambda: core.supervisor.state.value == "READY")
     assert core.status()["safety"]["interrupted"] is None
     assert (await client.post("/procedure/start", headers=op)).status_code == 200
+
+
+async def test_the_surgeon_selects_a_target_among_those_registered(rig) -> None:
+    """Issue 33 item 1: POST /targets/select names the current target (shown in /status);
+    a name not registered is 409 and keeps the choice; new targets without it clear it."""
+    core, client, clear, _, _ = rig
+    op = _auth(clear, "operator")
+    r = await client.post("/targets/select", headers=op, json={"name": "s2"})
+    assert r.status_code == 409 and "none, POST /targets first" in r.json()["detail"]
+    body = {"targets": [{"name": f"s{k}", "p_OM": [0.0, 0.01 * k, -0.01]} for k in range(3)]}
+    assert (await client.post("/targets", headers=op, json=body)).status_code == 200
+    assert (await client.post("/targets/select", headers=op,
+                              json={"name": "s2"})).status_code == 200
+    r = await client.post("/targets/select", headers=op, json={"name": "s7"})
+    assert r.status_code == 409 and "registered: s0, s1, s2" in r.json()["detail"]
+    st = (await client.get("/status", headers=op)).json()
+    assert st["selected_target"] == "s2" and core.selections == 1
+    body["targets"] = body["targets"][:2]
+    assert (await client.post("/targets", headers=op, json=body)).status_code == 200
+    assert core.selected_target is None
+
+
+async def test_status_gives_each_time_on_both_clocks(rig) -> None:
+    """Issue 33 item 6: /status gives the daemon's monotonic seconds and, beside each, the
+    same instant in UTC as the audit log writes it, so the two line up."""
+    import datetime
+
+    core, client, clear, _, audit_path = rig
+    op = _auth(clear, "operator")
+    assert (await client.post("/estop", headers=op, json={"reason": "t"})).status_code == 200
+    st = (await client.get("/status", headers=op)).json()
+    now = datetime.datetime.now(datetime.UTC)
+
+    def parse(text: str) -> datetime.datetime:
+        assert text.endswith("Z")
+        return datetime.datetime.fromisoformat(text[:-1] + "+00:00")
+
+    assert abs((parse(st["clock"]["utc"]) - now).total_seconds()) < 2.0
+    estop = st["safety"]["history"][-1]
+    assert estop["to"] == "ESTOP" and st["safety"]["since"] == estop["time"]
+    # the transition's UTC is the status's UTC less the monotonic seconds since it
+    gap = st["clock"]["monotonic_s"] - estop["time"]
+    utc = parse(st["clock"]["utc"]) - datetime.timedelta(seconds=gap)
+    assert abs((parse(estop["time_utc"]) - utc).total_seconds()) < 0.002
+    assert st["safety"]["since_utc"] == estop["time_utc"]
+    audit = [json.loads(x) for x in audit_path.read_text().splitlines()]
+    assert abs((parse(audit[-1]["time"]) - parse(estop["time_utc"])).total_seconds()) < 1.0

@@ -150,13 +150,18 @@ def test_sigterm_stops_the_robot_then_exits_cleanly(tmp_path: Path) -> None:
 def test_main_job_visits_every_target(tmp_path: Path) -> None:
     """The main job (`oralnavd --demo`): the daemon runs the two-stage navigation on the
     simulated cell while the demo plays the operator over REST; every suture target is
-    reached with a TRE under 0.2 mm against ground truth, and it exits 0."""
+    reached with a TRE under 0.2 mm against ground truth, and it exits 0. The same run
+    records the session (issue 33 item 4: `--record`, every 10th round's frames, cheap on
+    CPU): the file is complete, nothing was dropped, and its rounds replay bit for bit."""
     import json as _json
+
+    from oralnav.cli.replay import replay
 
     env = dict(os.environ, STATE_DIRECTORY=str(tmp_path), RUNTIME_DIRECTORY=str(tmp_path))
     proc = subprocess.run([sys.executable, "-m", "oralnav.daemon.main", "--demo", "--json",
-                           "--api-port", str(_free_port())], env=env, cwd=tmp_path,
-                          capture_output=True, text=True, timeout=300)
+                           "--api-port", str(_free_port()), "--record", "demo.mcap",
+                           "--record-every", "10", "--record-compression", "none"],
+                          env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     doc = _json.loads(proc.stdout)
     demo = doc["demo"]
@@ -164,6 +169,12 @@ def test_main_job_visits_every_target(tmp_path: Path) -> None:
     assert set(demo["tre_mm"]) == {"stitch_1", "stitch_2", "stitch_3", "stitch_4"}
     assert max(demo["tre_mm"].values()) < 0.2
     assert demo["rates_hz"]["tracking cell"] > 1.0
+    rec = doc["recording"]
+    assert rec["state"] == "stopped" and rec["path"] == str(tmp_path / "demo.mcap"), rec
+    assert rec["frames"]["dropped"] == 0 and rec["frames"]["written"] >= 3
+    out = replay(tmp_path / "demo.mcap")
+    assert out["all_identical"] and out["poses"] >= 3 and not out["truncated"], out
+    assert out["poses_recorded"] >= 2 * rec["rounds"]  # every pose of every round, kept
 
 
 def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:

@@ -78,3 +78,31 @@ def test_missing_poses_hold() -> None:
     RM, OM, EM = _observe(g, cell.home_T_B_tcp)
     assert nav.update(RM, None, EM, cell.home_T_B_tcp).goal is None
     assert nav.update(None, OM, EM, cell.home_T_B_tcp).goal is None
+
+
+def test_a_selected_target_is_visited_next_then_the_rest_in_order() -> None:
+    """Issue 33 (the seed's "select the current suture target"): a target chosen before
+    or during the targets stage is the next one reached, then the targets not visited in
+    their order; a visited one may be chosen again; an unknown name is a KeyError."""
+    cell, g, nav = _setup()
+    names = list(cell.targets_OM)
+    nav.select(names[2])  # before the start: the first one visited
+    T = cell.home_T_B_tcp.copy()
+    reached = []
+    for _ in range(60):
+        RM, OM, EM = _observe(g, T)
+        step = nav.update(RM, OM, EM, T)
+        if step.reached:
+            reached.append(step.reached)
+            if len(reached) == 2:
+                nav.select(names[2])  # again, though visited
+        if step.stage == "done":
+            break
+        T = step.goal
+    assert reached == [names[2], names[0], names[2], names[1], names[3]]
+    try:
+        nav.select("nope")
+    except KeyError as exc:
+        assert "no suture target 'nope'" in str(exc)
+    else:
+        raise AssertionError("an unknown target was accepted")

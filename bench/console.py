@@ -1,0 +1,216 @@
+"""What the surgeon's console costs the tracking (issue 33, "Figures": console frame rate,
+and the tracking rate with the console open, no drop beyond 5 %).
+
+``oralnav bench console --out DIR [--seconds S] [--fps F] [--rounds N] [--json]`` starts
+``oralnavd`` on the embedded simulated cell (its own process, a free loopback port, state
+in DIR), waits until it is READY, then alternates windows of ``S`` seconds without and
+with the console open in Debian's headless chromium (Selenium through chromedriver),
+signed in with the operator token, at ``F`` frames per second (the console's own
+setting), ``N`` times each (ABAB..., so that a drift of the machine falls on both). In
+each window it counts the tracked rounds from the left camera's frame counter
+(``GET /views`` at the window's start and end: the simulated cell renders a frame per
+round) and, with the console open, the frames each view showed (its ``data-counter``).
+It writes ``console.json`` into DIR and prints the summary: the tracking rate with and
+without (median over the windows) and its change, and the console's frames per second
+per view. Needs the ``test`` extra (selenium) and the Debian packages chromium and
+chromium-driver.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from oralnav.bench.busy_demo import free_port
+
+__all__ = ["main"]
+
+#: s: the daemon must be READY within this
+READY_TIMEOUT_S = 90.0
+
+
+def _say(msg: str) -> None:
+    print(f"bench console: {msg}", file=sys.stderr, flush=True)
+
+
+def _start_daemon(folder: Path, port: int) -> subprocess.Popen:
+    env = dict(os.environ, STATE_DIRECTORY=str(folder), RUNTIME_DIRECTORY=str(folder))
+    (folder / "tokens.txt").unlink(missing_ok=True)  # a previous run's: not this daemon's
+    return subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main", "--api-port",
+                             str(port)], env=env, cwd=folder, stdout=subprocess.DEVNULL,
+                            stderr=open(folder / "oralnavd.log", "w"))  # noqa: SIM115
+
+
+def _wait_ready(proc: subprocess.Popen, base: str, folder: Path) -> dict[str, str]:
+    deadline = time.monotonic() + READY_TIMEOUT_S
+    tokens: dict[str, str] = {}
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"oralnavd exited ({proc.returncode}); see "
+                               f"{folder / 'oralnavd.log'}")
+        if not tokens and (folder / "tokens.txt").exists():
+            tokens = dict(line.split() for line in
+                          (folder / "tokens.txt").read_text().splitlines())
+        if tokens:
+            try:
+                st = httpx.get(f"{base}/status", timeout=1.0, headers={
+                    "Authorization": f"Bearer {tokens['operator']}"}).json()
+                if st["safety"]["state"] == "READY":
+                    return tokens
+            except (httpx.TransportError, KeyError, ValueError):
+                pass
+        time.sleep(0.2)
+    raise RuntimeError(f"oralnavd not READY within {READY_TIMEOUT_S:g} s")
+
+
+def _browser(width: int = 1280, height: int = 800) -> Any:
+    from selenium import webdriver
+    from selenium.webdriver.chrome.options import Options
+    from selenium.webdriver.chrome.service import Service
+
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    driver = shutil.which("chromedriver")
+    if not chromium or not driver:
+        raise RuntimeError("needs the Debian packages chromium and chromium-driver")
+    opts = Options()
+    opts.binary_location = chromium
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage",
+                "--disable-gpu", f"--window-size={width},{height}"):
+        opts.add_argument(arg)
+    return webdriver.Chrome(service=Service(driver), options=opts)
+
+
+def _left_counter(base: str, head: dict[str, str]) -> tuple[int, float]:
+    cams = httpx.get(f"{base}/views", headers=head, timeout=2.0).json()["cameras"]
+    left = next(c for c in cams if c["name"] == "left")
+    return int(left["counter"]), time.monotonic()
+
+
+def _shown(driver: Any) -> dict[str, int]:
+    from selenium.webdriver.common.by import By
+
+    return {e.get_attribute("data-camera"): int(e.get_attribute("data-counter") or -1)
+            for e in driver.find_elements(By.CSS_SELECTOR, "figure.view[data-counter]")}
+
+
+class _RemoteConsole:
+    """The console's requests without a browser, as when the console runs on another
+    machine (a tablet): every ``1 / fps`` s ``GET /views``, then the JPEG of each camera
+    whose counter moved, as ``console.js`` does; in a thread, until stopped."""
+
+    def __init__(self, base: str, head: dict[str, str], fps: int) -> None:
+        import threading
+
+        self.base, self.head, self.period = base, head, 1.0 / fps
+        self.shown: dict[str, int] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="remote console",
+                                        daemon=True)
+
+    def __enter__(self) -> _RemoteConsole:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+    def _run(self) -> None:
+        seen: dict[str, int] = {}
+        with httpx.Client(base_url=self.base, headers=self.head, timeout=2.0) as api:
+            while not self._stop.is_set():
+                t0 = time.monotonic()
+                for cam in api.get("/views").json()["cameras"]:
+                    if seen.get(cam["name"]) != cam["counter"]:
+                        r = api.get(f"/views/{cam['name']}/image", params={"width": 640})
+                        seen[cam["name"]] = int(r.headers["X-Frame-Counter"])
+                        self.shown[cam["name"]] = self.shown.get(cam["name"], 0) + 1
+                self._stop.wait(max(0.0, self.period - (time.monotonic() - t0)))
+
+
+def main(out: Path, *, seconds: float = 20.0, fps: int = 10, rounds: int = 2
+         ) -> dict[str, Any]:
+    """Run the measurement (module docstring); returns what ``console.json`` holds."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import Select
+
+    out = out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    port = free_port()
+    base = f"http://127.0.0.1:{port}"
+    proc = _start_daemon(out, port)
+    driver = None
+    windows: list[dict[str, Any]] = []
+    try:
+        tokens = _wait_ready(proc, base, out)
+        head = {"Authorization": f"Bearer {tokens['operator']}"}
+        _say(f"oralnavd READY on {base}; {rounds} x (closed, browser here, remote) "
+             f"windows of {seconds:g} s")
+        driver = _browser()
+        driver.get(base + "/")
+        driver.find_element(By.ID, "token").send_keys(tokens["operator"])
+        driver.find_element(By.CSS_SELECTOR, "#login button").click()
+        for _ in range(rounds):
+            for mode in ("closed", "browser", "remote"):
+                remote = None
+                if mode == "browser":
+                    driver.get(base + "/")  # signed in still: the tab keeps the token
+                    Select(driver.find_element(By.ID, "fps")).select_by_value(str(fps))
+                    time.sleep(2.0)  # the page up and its views flowing
+                    before = _shown(driver)
+                else:
+                    driver.get("about:blank")
+                    time.sleep(1.0)
+                    if mode == "remote":
+                        remote = _RemoteConsole(base, head, fps).__enter__()
+                        time.sleep(1.0)
+                        before = dict(remote.shown)
+                n0, t0 = _left_counter(base, head)
+                time.sleep(seconds)
+                n1, t1 = _left_counter(base, head)
+                w: dict[str, Any] = {"mode": mode, "seconds": t1 - t0,
+                                     "tracking_hz": (n1 - n0) / (t1 - t0)}
+                if mode != "closed":
+                    after = _shown(driver) if remote is None else dict(remote.shown)
+                    w["shown_hz"] = {c: (after[c] - before.get(c, after[c])) / (t1 - t0)
+                                     for c in after}
+                if remote is not None:
+                    remote.__exit__(None, None, None)
+                windows.append(w)
+                shown = ", ".join(f"{c} {v:.2f}" for c, v in w.get("shown_hz", {}).items())
+                _say(f"console {mode}: tracking {w['tracking_hz']:.2f} rounds/s"
+                     + (f"; frames shown per s: {shown}" if shown else ""))
+    finally:
+        if driver is not None:
+            driver.quit()
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+    def median(mode: str, key: str = "tracking_hz") -> float | None:
+        vals = [w[key] for w in windows if w["mode"] == mode]
+        return statistics.median(vals) if vals else None
+
+    closed = median("closed")
+    doc: dict[str, Any] = {"seconds": seconds, "fps_setting": fps, "rounds": rounds,
+                           "cpus": os.cpu_count(), "tracking_hz_closed": closed}
+    for mode in ("browser", "remote"):
+        on = median(mode)
+        shown = [v for w in windows if w["mode"] == mode for v in w["shown_hz"].values()]
+        doc[mode] = {"tracking_hz": on, "tracking_change_pct": 100.0 * (on - closed) / closed,
+                     "console_fps_per_view": statistics.median(shown) if shown else None}
+    doc["windows"] = windows
+    (out / "console.json").write_text(json.dumps(doc, indent=2))
+    return doc

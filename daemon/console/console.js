@@ -1,0 +1,401 @@
+// oralnav console: the surgeon's page over the daemon's REST API and telemetry websocket.
+// Plain browser JavaScript, no library: every action is one audited API request made with
+// the token the user signed in with; a refusal (wrong role, wrong state) is shown as the
+// API words it. Text from the daemon is only ever set as textContent (never parsed as
+// HTML). docs/console.md describes the page.
+"use strict";
+
+const KEY = "oralnav.token";          // sessionStorage: the token lives as long as the tab
+const VIEW_WIDTH = 640;               // px asked of the daemon per view (it downscales)
+const RECONNECT_MS = [250, 500, 1000, 2000, 4000];  // websocket back-off, then 4 s
+
+const S = {
+  token: sessionStorage.getItem(KEY) || "",
+  who: null,                          // {name, role}
+  ws: null, wsTries: 0, wsUp: false,
+  status: null,                       // the newest /status document (telemetry)
+  targets: [], tre: {},
+  fps: 5, overlay: true, viewBusy: false, viewTimer: null,
+  views: new Map(),                   // camera -> {card, img, canvas, label, counter, meta}
+  shown: 0, shownSince: performance.now(),
+};
+
+const $ = (id) => document.getElementById(id);
+
+// -- requests ---------------------------------------------------------------------------
+async function api(method, path, body) {
+  const init = { method, headers: { Authorization: `Bearer ${S.token}` } };
+  if (body !== undefined) {
+    init.headers["Content-Type"] = "application/json";
+    init.body = JSON.stringify(body);
+  }
+  let res;
+  try {
+    res = await fetch(path, init);
+  } catch (err) {
+    return { ok: false, status: 0, data: { detail: `daemon unreachable (${err.message})` } };
+  }
+  let data = null;
+  const type = res.headers.get("Content-Type") || "";
+  if (type.includes("application/json")) data = await res.json().catch(() => null);
+  if (res.status === 401) signOut("the token was not accepted (401): sign in again");
+  return { ok: res.ok, status: res.status, data, res };
+}
+
+function detail(r) {
+  const d = r.data && r.data.detail;
+  return d ? String(d) : `HTTP ${r.status}`;
+}
+
+let noticeTimer = null;
+function notify(text, kind = "info") {
+  const n = $("notice");
+  n.textContent = text;
+  n.dataset.kind = kind;
+  n.hidden = false;
+  clearTimeout(noticeTimer);
+  noticeTimer = setTimeout(() => { n.hidden = true; }, kind === "error" ? 9000 : 4000);
+}
+
+async function command(path, body, label) {
+  const r = await api("POST", path, body);
+  if (r.ok) {
+    notify(`${label}: done`, "ok");
+  } else if (r.status === 403) {
+    notify(`${label} refused: your token (${S.who ? S.who.role : "?"}) may only watch; ` +
+           `an operator token is needed (${detail(r)})`, "error");
+  } else {
+    notify(`${label} refused (${r.status}): ${detail(r)}`, "error");
+  }
+  return r;
+}
+
+// -- sign in / out -----------------------------------------------------------------------
+async function signIn(token) {
+  S.token = token;
+  const r = await api("GET", "/session");
+  if (!r.ok) {
+    $("login-error").textContent = r.status === 401 ? "unknown token" : detail(r);
+    S.token = "";
+    return false;
+  }
+  sessionStorage.setItem(KEY, token);
+  S.who = r.data;
+  $("who").textContent = `${S.who.name} (${S.who.role})`;
+  $("login").hidden = true;
+  $("main").hidden = false;
+  $("signout").hidden = false;
+  connect();
+  refreshTargets();
+  scheduleViews(0);
+  return true;
+}
+
+function signOut(why) {
+  sessionStorage.removeItem(KEY);
+  S.token = "";
+  S.who = null;
+  if (S.ws) { S.ws.onclose = null; S.ws.close(); S.ws = null; }
+  clearTimeout(S.viewTimer);
+  for (const v of S.views.values()) if (v.url) URL.revokeObjectURL(v.url);
+  S.views.clear();
+  $("views").replaceChildren();
+  $("main").hidden = true;
+  $("signout").hidden = true;
+  $("who").textContent = "";
+  $("login").hidden = false;
+  $("login-error").textContent = why || "";
+}
+
+// -- telemetry: the daemon's state, pushed; reconnects by itself ----------------------------
+function connect() {
+  if (!S.token) return;
+  const scheme = location.protocol === "https:" ? "wss" : "ws";
+  const ws = new WebSocket(`${scheme}://${location.host}/telemetry?token=` +
+                           encodeURIComponent(S.token));
+  S.ws = ws;
+  ws.onopen = () => {
+    S.wsTries = 0;
+    setLink(true);
+    ws.send(JSON.stringify({ subscribe: ["status"] }));
+  };
+  ws.onmessage = (ev) => {
+    let doc;
+    try { doc = JSON.parse(ev.data); } catch (_) { return; }
+    if (doc.status) showStatus(doc.status);
+    else if (doc.state) showState(doc.state, null);
+  };
+  ws.onclose = () => {
+    setLink(false);
+    if (S.ws !== ws || !S.token) return;
+    const wait = RECONNECT_MS[Math.min(S.wsTries, RECONNECT_MS.length - 1)];
+    S.wsTries += 1;
+    setTimeout(connect, wait);
+  };
+}
+
+function setLink(up) {
+  S.wsUp = up;
+  $("link").dataset.up = String(up);
+  $("link").textContent = up ? "live" : "reconnecting...";
+}
+
+// -- what the status says -----------------------------------------------------------------
+function showState(state, why) {
+  const el = $("state");
+  el.textContent = state;
+  el.dataset.state = state;
+  if (why !== null) $("why").textContent = why;
+}
+
+function fmt(x, digits) {
+  return typeof x === "number" && isFinite(x) ? x.toFixed(digits) : "-";
+}
+
+function showStatus(st) {
+  S.status = st;
+  const sf = st.safety || {};
+  const reasons = (sf.reasons || []).map((c) => `${c.source}: ${c.reason}`);
+  const why = reasons.join("; ") || sf.not_ready_reason || "";
+  showState(sf.state || "UNKNOWN", why);
+  const list = $("reasons");
+  list.replaceChildren(...reasons.map((t) => li(t)));
+  if (!reasons.length && sf.not_ready_reason) list.append(li(`not ready: ${sf.not_ready_reason}`));
+  const hist = (sf.history || []).slice(-8).reverse();
+  $("history").replaceChildren(...hist.map((h) =>
+    li(`${h.from} -> ${h.to} (${h.who}: ${h.reason})`)));
+
+  const p = st.procedure || {};
+  $("stage").textContent = p.done ? "done" : (p.stage || "-");
+  const next = p.target || (p.remaining && p.remaining[0]) || st.selected_target || "-";
+  $("target").textContent = next;
+  $("error").textContent = p.error_mm === undefined ? "-" :
+    `${fmt(p.error_mm, 3)} mm, ${fmt(p.error_deg, 2)} deg`;
+  S.tre = p.tre_mm || {};
+  const reached = Object.entries(S.tre).map(([n, v]) => `${n} ${fmt(v, 3)} mm`);
+  $("reached").textContent = reached.join(", ") || "-";
+  markTargets(next, st.selected_target);
+}
+
+function li(text) {
+  const e = document.createElement("li");
+  e.textContent = text;
+  return e;
+}
+
+// -- suture targets -----------------------------------------------------------------------
+async function refreshTargets() {
+  const r = await api("GET", "/targets");
+  if (!r.ok) return;
+  const targets = r.data.targets || [];
+  const same = JSON.stringify(targets) === JSON.stringify(S.targets);
+  S.targets = targets;
+  if (same && $("targets").children.length) {  // keep the rows (and a choice being made)
+    if (S.status) showStatus(S.status);
+    return;
+  }
+  const checked = (document.querySelector("input[name=target]:checked") || {}).value;
+  $("targets").replaceChildren(...S.targets.map((t) => {
+    const row = document.createElement("li");
+    row.dataset.name = t.name;
+    const label = document.createElement("label");
+    const radio = document.createElement("input");
+    radio.type = "radio";
+    radio.name = "target";
+    radio.value = t.name;
+    radio.checked = t.name === checked;
+    label.append(radio, document.createTextNode(" " + t.name));
+    const where = document.createElement("span");
+    where.className = "tre";
+    where.textContent = t.p_OM.map((v) => (v * 1e3).toFixed(1)).join(", ") + " mm";
+    row.append(label, where);
+    return row;
+  }));
+  if (!S.targets.length) $("targets").append(li("none registered"));
+  if (S.status) showStatus(S.status);
+}
+
+function markTargets(current, selected) {
+  for (const row of $("targets").children) {
+    const name = row.dataset.name;
+    if (!name) continue;
+    row.dataset.current = String(name === current);
+    const tre = S.tre[name];
+    if (tre !== undefined) row.querySelector(".tre").textContent = `TRE ${fmt(tre, 3)} mm`;
+    row.title = name === selected ? "selected by the surgeon" : "";
+  }
+}
+
+async function registerTargets(targets, label) {
+  const r = await command("/targets", { targets }, label);
+  if (r.ok) refreshTargets();
+}
+
+// -- live views -------------------------------------------------------------------------------
+function scheduleViews(delay) {
+  clearTimeout(S.viewTimer);
+  if (!S.token) return;
+  S.viewTimer = setTimeout(updateViews, delay);
+}
+
+async function updateViews() {
+  const period = S.fps > 0 ? 1000 / S.fps : 0;
+  const t0 = performance.now();
+  if (period && !S.viewBusy && !document.hidden) {
+    S.viewBusy = true;
+    try {
+      const r = await api("GET", "/views");
+      if (r.ok) {
+        await Promise.all(r.data.cameras.map((meta) => showView(meta)));
+      }
+    } finally {
+      S.viewBusy = false;
+    }
+    const secs = (performance.now() - S.shownSince) / 1000;
+    if (secs >= 2) {
+      $("viewrate").textContent = `${(S.shown / secs).toFixed(1)} images/s shown`;
+      S.shown = 0;
+      S.shownSince = performance.now();
+    }
+  }
+  // the next round starts one period after this one started, never piling requests up
+  scheduleViews(period ? Math.max(0, period - (performance.now() - t0)) : 500);
+}
+
+function viewCard(name) {
+  let v = S.views.get(name);
+  if (v) return v;
+  const card = document.createElement("figure");
+  card.className = "view";
+  card.dataset.camera = name;
+  const img = document.createElement("img");
+  img.alt = `camera ${name}`;
+  const canvas = document.createElement("canvas");
+  const label = document.createElement("figcaption");
+  label.className = "label";
+  card.append(img, canvas, label);
+  $("views").append(card);
+  v = { card, img, canvas, label, counter: -1, meta: null, url: null };
+  img.addEventListener("load", () => drawOverlay(v));
+  S.views.set(name, v);
+  return v;
+}
+
+async function showView(meta) {
+  const v = viewCard(meta.name);
+  v.meta = meta;
+  if (meta.counter === v.counter) return;  // nothing new from this camera
+  const r = await fetch(`/views/${encodeURIComponent(meta.name)}/image?width=${VIEW_WIDTH}`,
+                        { headers: { Authorization: `Bearer ${S.token}` } }).catch(() => null);
+  if (!r || !r.ok) return;
+  const blob = await r.blob();
+  const counter = Number(r.headers.get("X-Frame-Counter"));
+  if (v.url) URL.revokeObjectURL(v.url);
+  v.url = URL.createObjectURL(blob);
+  v.counter = counter;
+  v.img.src = v.url;
+  v.card.dataset.counter = String(counter);
+  S.shown += 1;
+  const fields = meta.fields.map((f) => `${f.name} (${f.corners})`).join(", ");
+  v.label.replaceChildren(text("b", meta.name), text("span", `#${counter}`),
+                          text("span", `${meta.width}x${meta.height}`),
+                          text("span", fields || "no field", "fields"));
+}
+
+function text(tag, content, cls) {
+  const e = document.createElement(tag);
+  e.textContent = content;
+  if (cls) e.className = cls;
+  return e;
+}
+
+const COLOURS = { robot: "#4fc3f7", opener: "#ffd54f", effector: "#81c784" };
+
+function drawOverlay(v) {
+  const { img, canvas, meta } = v;
+  if (canvas.width !== img.clientWidth || canvas.height !== img.clientHeight) {
+    canvas.width = img.clientWidth;  // reallocates: only when the shown size changed
+    canvas.height = img.clientHeight;
+  }
+  const g = canvas.getContext("2d");
+  g.clearRect(0, 0, canvas.width, canvas.height);
+  if (!S.overlay || !meta) return;
+  const k = canvas.width / meta.width;  // frame pixels -> shown pixels
+  for (const f of meta.fields) {
+    g.strokeStyle = COLOURS[f.name] || "#ff80ab";
+    g.lineWidth = 2;
+    if (f.hull.length > 2) {
+      g.beginPath();
+      f.hull.forEach(([x, y], i) => (i ? g.lineTo(x * k, y * k) : g.moveTo(x * k, y * k)));
+      g.closePath();
+      g.stroke();
+    }
+    if (f.axes) {
+      const [o, ...tips] = f.axes;
+      ["#ff5252", "#69f0ae", "#448aff"].forEach((c, i) => {
+        g.strokeStyle = c;
+        g.beginPath();
+        g.moveTo(o[0] * k, o[1] * k);
+        g.lineTo(tips[i][0] * k, tips[i][1] * k);
+        g.stroke();
+      });
+      g.fillStyle = COLOURS[f.name] || "#ff80ab";
+      g.font = "13px system-ui, sans-serif";
+      g.fillText(f.name, o[0] * k + 6, o[1] * k - 6);
+    }
+  }
+}
+
+// -- wiring ---------------------------------------------------------------------------------
+function wire() {
+  $("login").addEventListener("submit", (ev) => {
+    ev.preventDefault();
+    signIn($("token").value.trim());
+  });
+  $("signout").addEventListener("click", () => signOut(""));
+  $("estop").addEventListener("click", () =>
+    command("/estop", { reason: "console e-stop" }, "E-stop"));
+  for (const b of document.querySelectorAll("button[data-post]")) {
+    b.addEventListener("click", () => command(b.dataset.post, undefined, b.textContent));
+  }
+  $("select").addEventListener("click", async () => {
+    const pick = document.querySelector("input[name=target]:checked");
+    if (!pick) { notify("choose a target in the list first", "error"); return; }
+    await command("/targets/select", { name: pick.value }, `Select ${pick.value}`);
+  });
+  $("planned").addEventListener("click", async () => {
+    const r = await api("GET", "/targets/planned");
+    if (!r.ok) { notify(`no planned targets: ${detail(r)}`, "error"); return; }
+    if (!r.data.targets.length) { notify("this cell has no planned targets", "error"); return; }
+    registerTargets(r.data.targets, `Register ${r.data.targets.length} planned targets`);
+  });
+  $("import").addEventListener("change", async (ev) => {
+    const file = ev.target.files[0];
+    ev.target.value = "";
+    if (!file) return;
+    let doc;
+    try { doc = JSON.parse(await file.text()); } catch (err) {
+      notify(`${file.name}: not JSON (${err.message})`, "error");
+      return;
+    }
+    const targets = Array.isArray(doc) ? doc : doc.targets;
+    if (!Array.isArray(targets)) {
+      notify(`${file.name}: expected {"targets": [...]} or a list of targets`, "error");
+      return;
+    }
+    registerTargets(targets, `Import ${file.name}`);
+  });
+  $("fps").addEventListener("change", (ev) => {
+    S.fps = Number(ev.target.value);
+    scheduleViews(0);
+  });
+  $("overlay").addEventListener("change", (ev) => {
+    S.overlay = ev.target.checked;
+    for (const v of S.views.values()) drawOverlay(v);
+  });
+  window.addEventListener("resize", () => { for (const v of S.views.values()) drawOverlay(v); });
+  setInterval(() => { if (S.token) refreshTargets(); }, 3000);
+  if (S.token) signIn(S.token);
+}
+
+wire();

@@ -1,0 +1,182 @@
+"""The console's live views: the newest frame of every camera the daemon reads, with the
+marker fields tracked in it, as downscaled JPEG and overlay geometry.
+
+:meth:`LiveViews.tap` is a tap of the capture pipeline (``daemon/capture_task.py``): it
+only keeps a reference to each round's frames and estimates (a dict update on the event
+loop), so a console never costs tracking anything on the tracking path. The work happens
+when a console asks (``GET /views/{camera}/image``): one frame is downscaled and encoded
+in a worker thread, at most :attr:`LiveViews.max_hz` times a second per camera whatever
+the number of consoles or their polling rate (a request in between gets the previous
+JPEG again), and one encode at a time, so the views' share of the CPU is bounded
+(docs/console.md gives the measured cost).
+
+Overlays are in the frame's own pixels (x right, y down, the top-left pixel's centre at
+(0, 0)): for each field found in that camera, the convex hull of its inlier corners and
+its origin's axes (``AXIS_M`` long, projected from the estimated pose through the rig's
+camera model). The browser scales them to the size it shows.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from oralnav.control.geometry import invert
+
+__all__ = ["AXIS_M", "LiveViews", "NoFrame"]
+
+#: Length (m) of the field axes drawn over the views.
+AXIS_M = 0.01
+#: The widths (px) a client may ask for; the frame is never upscaled.
+MIN_WIDTH, MAX_WIDTH = 64, 1920
+#: JPEG quality bounds (OpenCV's scale, 0-100).
+MIN_QUALITY, MAX_QUALITY = 10, 95
+
+
+class NoFrame(LookupError):
+    """The camera is unknown, or has delivered no frame yet; the message says which."""
+
+
+@dataclass(frozen=True)
+class _Latest:
+    """One camera's newest frame and what the round found in it."""
+
+    frame: Any                      # CameraFrame (image, timestamp, counter, camera)
+    source: str                     # the pipeline source it came from
+    arrived: float                  # s, the daemon's monotonic clock
+    # (field name, estimate, the camera's model) for each field found in this camera
+    found: tuple[tuple[str, Any, Any], ...]
+
+
+@dataclass
+class _Encoded:
+    counter: int
+    width: int
+    quality: int
+    at: float                       # s, monotonic: when it was encoded
+    jpeg: bytes
+    stamp: float                    # the frame's capture instant (s)
+
+
+class LiveViews:
+    """See the module docstring. ``max_hz``: the most JPEGs encoded per camera and second
+    (``[api] views_max_hz``); ``clock``: the daemon's monotonic clock (s)."""
+
+    def __init__(self, max_hz: float = 10.0, clock: Callable[[], float] = time.monotonic
+                 ) -> None:
+        if not 0 < max_hz <= 60:
+            raise ValueError(f"views max_hz must be in (0, 60] Hz, got {max_hz}")
+        self.max_hz = float(max_hz)
+        self.clock = clock
+        self._latest: dict[str, _Latest] = {}
+        self._cache: dict[str, _Encoded] = {}
+        self._encode_lock = threading.Lock()  # one encode at a time, across consoles
+        #: encodes done and the seconds they took, for the status and the benchmark
+        self.encodes = 0
+        self.encode_s = 0.0
+
+    # -- the pipeline's side (event loop, must not block) -----------------------------------
+    def tap(self, rnd: Any) -> None:
+        """Keep ``rnd``'s frames (a ``CapturedRound``) as each camera's newest."""
+        now = self.clock()
+        found: dict[str, list[tuple[str, Any, Any]]] = {}
+        for view, _stamp, ests in rnd.views:
+            rig = view.tracker.rig
+            for fname, est in ests.items():
+                for cam in getattr(est, "per_camera", {}):
+                    if cam in rig.names:
+                        found.setdefault(cam, []).append((fname, est, rig[cam]))
+        for cam, frame in rnd.frames.items():
+            self._latest[cam] = _Latest(frame, rnd.source, now, tuple(found.get(cam, ())))
+
+    # -- the console's side ---------------------------------------------------------------
+    def cameras(self) -> list[dict[str, Any]]:
+        """Each camera with a frame, in the order they first came (the sources' own: the
+        stereo pair before the endoscope on the simulated cell): name, size (px), frame
+        counter, capture instant and age (s), and the overlay of the fields found in it
+        (:meth:`overlay`)."""
+        now = self.clock()
+        out = []
+        for cam, latest in list(self._latest.items()):  # the order the cameras came in
+            h, w = latest.frame.image.shape[:2]
+            out.append({"name": cam, "source": latest.source, "width": int(w),
+                        "height": int(h), "counter": int(latest.frame.counter),
+                        "stamp": float(latest.frame.timestamp),
+                        "age_s": now - latest.arrived, "fields": self._overlay(latest)})
+        return out
+
+    def overlay(self, camera: str) -> list[dict[str, Any]]:
+        """The fields found in ``camera``'s newest frame: ``name``, ``corners`` (inliers
+        in this camera), ``hull`` (px polygon) and ``axes`` (px: origin, x, y, z tips)."""
+        return self._overlay(self._get(camera))
+
+    def jpeg(self, camera: str, width: int = 640, quality: int = 70
+             ) -> tuple[bytes, int, float]:
+        """``camera``'s newest frame as JPEG, ``width`` px wide at most (aspect kept),
+        and its frame counter and capture instant (s). Blocking (resize and encode): call
+        it in a worker thread. Within ``1 / max_hz`` s of the last encode of this camera
+        it returns that JPEG again. Raises :class:`NoFrame` and ``ValueError`` (width or
+        quality out of bounds)."""
+        if not MIN_WIDTH <= width <= MAX_WIDTH:
+            raise ValueError(f"width must be {MIN_WIDTH}..{MAX_WIDTH} px, got {width}")
+        if not MIN_QUALITY <= quality <= MAX_QUALITY:
+            raise ValueError(f"quality must be {MIN_QUALITY}..{MAX_QUALITY}, got {quality}")
+        latest = self._get(camera)
+        with self._encode_lock:
+            now = time.monotonic()
+            cached = self._cache.get(camera)
+            if cached is not None and cached.width == width and cached.quality == quality \
+                    and (cached.counter == latest.frame.counter
+                         or now - cached.at < 1.0 / self.max_hz):
+                return cached.jpeg, cached.counter, cached.stamp
+            latest = self._get(camera)  # the newest, after waiting for the lock
+            data = _encode(latest.frame.image, width, quality)
+            done = time.monotonic()
+            self.encodes += 1
+            self.encode_s += done - now
+            enc = _Encoded(int(latest.frame.counter), width, quality, done, data,
+                           float(latest.frame.timestamp))
+            self._cache[camera] = enc
+            return enc.jpeg, enc.counter, enc.stamp
+
+    # -- internals ------------------------------------------------------------------------
+    def _get(self, camera: str) -> _Latest:
+        latest = self._latest.get(camera)
+        if latest is None:
+            known = ", ".join(sorted(self._latest)) or "none yet"
+            raise NoFrame(f"no frame from camera {camera!r} (cameras with frames: {known})")
+        return latest
+
+    @staticmethod
+    def _overlay(latest: _Latest) -> list[dict[str, Any]]:
+        out = []
+        for fname, est, model in latest.found:
+            _rows, px = est.per_camera[model.name]
+            px = np.asarray(px, dtype=np.float32).reshape(-1, 2)
+            hull = cv2.convexHull(px).reshape(-1, 2) if len(px) >= 3 else px
+            T_cam_field = invert(np.asarray(model.T_ref_cam)) @ np.asarray(est.T_ref_field)
+            tips = model.project_from(T_cam_field, np.vstack([np.zeros(3),
+                                                              AXIS_M * np.eye(3)]))
+            axes = None if not np.all(np.isfinite(tips)) else np.round(tips, 1).tolist()
+            out.append({"name": fname, "corners": len(px),
+                        "hull": np.round(hull.astype(float), 1).tolist(), "axes": axes})
+        return out
+
+
+def _encode(image: np.ndarray, width: int, quality: int) -> bytes:
+    """``image`` (mono8 or BGR) at ``width`` px wide at most, as JPEG bytes."""
+    h, w = image.shape[:2]
+    if w > width:  # INTER_AREA: the anti-aliased downscale (no moire on the fields)
+        image = cv2.resize(image, (width, max(1, round(h * width / w))),
+                           interpolation=cv2.INTER_AREA)
+    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:  # pragma: no cover - OpenCV encodes any 8-bit image
+        raise RuntimeError("JPEG encoding failed")
+    return buf.tobytes()
+
