@@ -635,7 +635,7 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
             await _deny(ws, 503, detail)
             return
         await ws.accept()
-        await _stream(ws, ops, period)
+        await _stream(ws, ops, period, views)
 
     return app
 
@@ -652,8 +652,10 @@ async def _deny(ws: WebSocket, status: int, detail: str,
 
 #: what a telemetry client may subscribe to besides the snapshot: ``status`` (the whole
 #: GET /status document, at most every STATUS_PERIOD_S and at once on a safety state
-#: change) and ``poses`` (GET /poses, with every snapshot)
-TOPICS = frozenset({"status", "poses"})
+#: change), ``poses`` (GET /poses, with every snapshot) and ``views`` (GET /views's
+#: cameras, with the snapshot that follows a new frame: a console learns of each frame
+#: without polling)
+TOPICS = frozenset({"status", "poses", "views"})
 #: s, the least time between two ``status`` documents on one connection
 STATUS_PERIOD_S = 0.2
 #: bytes: a longer client message is refused (a subscription is a few dozen bytes)
@@ -678,11 +680,13 @@ def _subscription(text: str | None) -> tuple[set[str] | None, str | None]:
     return set(topics), None
 
 
-async def _stream(ws: WebSocket, ops: Operations, period: float) -> None:
+async def _stream(ws: WebSocket, ops: Operations, period: float,
+                  views: LiveViews | None = None) -> None:
     """Send ``ops.telemetry()`` every ``period`` seconds until the client disconnects,
     with what it subscribed to (:data:`TOPICS`; a refused message is answered
     ``{"error": ...}`` and changes nothing)."""
     topics: set[str] = set()
+    sent_frames: dict[str, int] = {}  # views: the counters this client was last sent
     async with anyio.create_task_group() as tg:
         async def watch() -> None:
             # reading is also how a disconnect is seen at once
@@ -712,6 +716,11 @@ async def _stream(ws: WebSocket, ops: Operations, period: float) -> None:
                         last_status, last_state = now, doc.get("state")
                     if "poses" in topics:
                         doc = {**doc, "poses": ops.poses()}
+                    if "views" in topics and views is not None:
+                        frames = views.counters()
+                        if frames != sent_frames:
+                            doc = {**doc, "views": views.cameras()}
+                            sent_frames = frames
                     text = json.dumps(jsonable(doc), allow_nan=False)
                 except Exception as exc:
                     log.exception("telemetry snapshot failed")

@@ -111,6 +111,10 @@ class LiveViews:
                         "age_s": now - latest.arrived, "fields": self._overlay(latest)})
         return out
 
+    def counters(self) -> dict[str, int]:
+        """Each camera's newest frame counter (cheap: whether anything is new)."""
+        return {cam: int(latest.frame.counter) for cam, latest in self._latest.items()}
+
     def overlay(self, camera: str) -> list[dict[str, Any]]:
         """The fields found in ``camera``'s newest frame: ``name``, ``corners`` (inliers
         in this camera), ``hull`` (px polygon) and ``axes`` (px: origin, x, y, z tips)."""

@@ -15,7 +15,7 @@ const S = {
   ws: null, wsTries: 0, wsUp: false,
   status: null,                       // the newest /status document (telemetry)
   targets: [], tre: {},
-  fps: 5, overlay: true, viewBusy: false, viewTimer: null,
+  fps: 5, overlay: true,
   views: new Map(),                   // camera -> {card, img, canvas, label, counter, meta}
   shown: 0, shownSince: performance.now(),
 };
@@ -87,7 +87,6 @@ async function signIn(token) {
   $("signout").hidden = false;
   connect();
   refreshTargets();
-  scheduleViews(0);
   return true;
 }
 
@@ -96,8 +95,10 @@ function signOut(why) {
   S.token = "";
   S.who = null;
   if (S.ws) { S.ws.onclose = null; S.ws.close(); S.ws = null; }
-  clearTimeout(S.viewTimer);
-  for (const v of S.views.values()) if (v.url) URL.revokeObjectURL(v.url);
+  for (const v of S.views.values()) {
+    clearTimeout(v.timer);
+    if (v.url) URL.revokeObjectURL(v.url);
+  }
   S.views.clear();
   $("views").replaceChildren();
   $("main").hidden = true;
@@ -117,13 +118,14 @@ function connect() {
   ws.onopen = () => {
     S.wsTries = 0;
     setLink(true);
-    ws.send(JSON.stringify({ subscribe: ["status"] }));
+    ws.send(JSON.stringify({ subscribe: ["status", "views"] }));
   };
   ws.onmessage = (ev) => {
     let doc;
     try { doc = JSON.parse(ev.data); } catch (_) { return; }
     if (doc.status) showStatus(doc.status);
     else if (doc.state) showState(doc.state, null);
+    if (doc.views) onViews(doc.views);
   };
   ws.onclose = () => {
     setLink(false);
@@ -232,34 +234,31 @@ async function registerTargets(targets, label) {
 }
 
 // -- live views -------------------------------------------------------------------------------
-function scheduleViews(delay) {
-  clearTimeout(S.viewTimer);
-  if (!S.token) return;
-  S.viewTimer = setTimeout(updateViews, delay);
+// The telemetry says when a camera has a new frame (topic "views": its counter and the
+// fields found in it); a view then fetches that frame's JPEG, at most S.fps times a second
+// and one request at a time, so an idle cell or a paused console costs the daemon nothing.
+function onViews(cameras) {
+  for (const meta of cameras) {
+    const v = viewCard(meta.name);
+    v.meta = meta;
+    pull(v);
+  }
+  const secs = (performance.now() - S.shownSince) / 1000;
+  if (secs >= 2) {
+    $("viewrate").textContent = `${(S.shown / secs).toFixed(1)} images/s shown`;
+    S.shown = 0;
+    S.shownSince = performance.now();
+  }
 }
 
-async function updateViews() {
-  const period = S.fps > 0 ? 1000 / S.fps : 0;
-  const t0 = performance.now();
-  if (period && !S.viewBusy && !document.hidden) {
-    S.viewBusy = true;
-    try {
-      const r = await api("GET", "/views");
-      if (r.ok) {
-        await Promise.all(r.data.cameras.map((meta) => showView(meta)));
-      }
-    } finally {
-      S.viewBusy = false;
-    }
-    const secs = (performance.now() - S.shownSince) / 1000;
-    if (secs >= 2) {
-      $("viewrate").textContent = `${(S.shown / secs).toFixed(1)} images/s shown`;
-      S.shown = 0;
-      S.shownSince = performance.now();
-    }
+function pull(v) {
+  if (!S.fps || v.busy || !v.meta || v.meta.counter === v.counter || document.hidden) return;
+  const wait = v.last + 1000 / S.fps - performance.now();
+  if (wait > 0) {  // too soon for the rate the operator set: once, when it is time
+    if (!v.timer) v.timer = setTimeout(() => { v.timer = null; pull(v); }, wait);
+    return;
   }
-  // the next round starts one period after this one started, never piling requests up
-  scheduleViews(period ? Math.max(0, period - (performance.now() - t0)) : 500);
+  showView(v);
 }
 
 function viewCard(name) {
@@ -275,31 +274,39 @@ function viewCard(name) {
   label.className = "label";
   card.append(img, canvas, label);
   $("views").append(card);
-  v = { card, img, canvas, label, counter: -1, meta: null, url: null };
+  v = { card, img, canvas, label, counter: -1, meta: null, shownMeta: null, url: null,
+        busy: false, last: -Infinity, timer: null };
   img.addEventListener("load", () => drawOverlay(v));
   S.views.set(name, v);
   return v;
 }
 
-async function showView(meta) {
-  const v = viewCard(meta.name);
-  v.meta = meta;
-  if (meta.counter === v.counter) return;  // nothing new from this camera
-  const r = await fetch(`/views/${encodeURIComponent(meta.name)}/image?width=${VIEW_WIDTH}`,
-                        { headers: { Authorization: `Bearer ${S.token}` } }).catch(() => null);
-  if (!r || !r.ok) return;
-  const blob = await r.blob();
-  const counter = Number(r.headers.get("X-Frame-Counter"));
-  if (v.url) URL.revokeObjectURL(v.url);
-  v.url = URL.createObjectURL(blob);
-  v.counter = counter;
-  v.img.src = v.url;
-  v.card.dataset.counter = String(counter);
-  S.shown += 1;
-  const fields = meta.fields.map((f) => `${f.name} (${f.corners})`).join(", ");
-  v.label.replaceChildren(text("b", meta.name), text("span", `#${counter}`),
-                          text("span", `${meta.width}x${meta.height}`),
-                          text("span", fields || "no field", "fields"));
+async function showView(v) {
+  const meta = v.meta;
+  v.busy = true;
+  v.last = performance.now();
+  try {
+    const r = await fetch(`/views/${encodeURIComponent(meta.name)}/image?width=${VIEW_WIDTH}`,
+                          { headers: { Authorization: `Bearer ${S.token}` } }).catch(() => null);
+    if (!r || !r.ok) return;
+    const blob = await r.blob();
+    const counter = Number(r.headers.get("X-Frame-Counter"));
+    if (v.url) URL.revokeObjectURL(v.url);
+    v.url = URL.createObjectURL(blob);
+    v.counter = counter;
+    // the overlay of the frame shown (the newest meta may already be a frame further)
+    v.shownMeta = meta.counter === counter ? meta : v.meta;
+    v.img.src = v.url;
+    v.card.dataset.counter = String(counter);
+    S.shown += 1;
+    const fields = meta.fields.map((f) => `${f.name} (${f.corners})`).join(", ");
+    v.label.replaceChildren(text("b", meta.name), text("span", `#${counter}`),
+                            text("span", `${meta.width}x${meta.height}`),
+                            text("span", fields || "no field", "fields"));
+  } finally {
+    v.busy = false;
+  }
+  pull(v);  // a frame that came while this one loaded
 }
 
 function text(tag, content, cls) {
@@ -312,7 +319,8 @@ function text(tag, content, cls) {
 const COLOURS = { robot: "#4fc3f7", opener: "#ffd54f", effector: "#81c784" };
 
 function drawOverlay(v) {
-  const { img, canvas, meta } = v;
+  const { img, canvas } = v;
+  const meta = v.shownMeta;
   if (canvas.width !== img.clientWidth || canvas.height !== img.clientHeight) {
     canvas.width = img.clientWidth;  // reallocates: only when the shown size changed
     canvas.height = img.clientHeight;
@@ -387,13 +395,16 @@ function wire() {
   });
   $("fps").addEventListener("change", (ev) => {
     S.fps = Number(ev.target.value);
-    scheduleViews(0);
+    for (const v of S.views.values()) pull(v);
   });
   $("overlay").addEventListener("change", (ev) => {
     S.overlay = ev.target.checked;
     for (const v of S.views.values()) drawOverlay(v);
   });
   window.addEventListener("resize", () => { for (const v of S.views.values()) drawOverlay(v); });
+  document.addEventListener("visibilitychange", () => {
+    for (const v of S.views.values()) pull(v);  // a tab shown again catches up at once
+  });
   setInterval(() => { if (S.token) refreshTargets(); }, 3000);
   if (S.token) signIn(S.token);
 }

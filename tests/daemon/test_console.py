@@ -152,3 +152,20 @@ async def test_telemetry_subscribes_to_status_and_poses(views_rig):
                     break
             else:
                 pytest.fail("an oversized message was not answered")
+
+
+async def test_telemetry_says_when_a_view_has_a_new_frame(views_rig):
+    """Item 1 "never slowing tracking": a console subscribed to ``views`` learns of each
+    new frame from the snapshot that follows it, once, instead of polling /views."""
+    async with running(views_rig.app) as port:
+        url = f"ws://127.0.0.1:{port}/telemetry?token={views_rig.tokens['observer']}"
+        async with websockets.connect(url) as ws:
+            await ws.send(json.dumps({"subscribe": ["views"]}))
+            counters = []
+            for _ in range(30):
+                msg = json.loads(await ws.recv())
+                if "views" in msg:
+                    counters.append([c["counter"] for c in msg["views"]])
+                    if len(counters) == 1:  # a new frame after the first announcement
+                        views_rig.views.tap(_round(8, _camera_rig(), _pose()))
+            assert counters == [[7, 7], [8, 8]], counters
