@@ -128,6 +128,8 @@ shift || true
 case "$cmd" in
     run)
         setup
+        # ./dev.sh run -- --record out/demo.mcap: what follows "--" goes to oralnavd
+        [ "${1:-}" = "--" ] && shift
         exec "$VENV/bin/oralnavd" --demo "$@"
         ;;
     test)

@@ -98,8 +98,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def recording_options(args: argparse.Namespace) -> Any:
     """``--record`` and its options as ``RecordingOptions`` (None without ``--record``);
-    ConfigError naming the option when they are wrong or the file's folder cannot take
-    it: a bad path is refused before anything starts."""
+    ConfigError naming the option when they are wrong or the file's folder cannot be
+    made or written: a bad path is refused before anything starts."""
     if not args.record:
         return None
     from oralnav.daemon.recording import RecordingError, RecordingOptions
@@ -112,8 +112,11 @@ def recording_options(args: argparse.Namespace) -> Any:
     except RecordingError as exc:
         raise ConfigError("--record", "", str(exc)) from None
     folder = opts.path.parent
-    if not folder.is_dir():
-        raise ConfigError("--record", "", f"{opts.path}: folder {folder} does not exist")
+    try:  # an output on the command line gets its folder, as every oralnav output does
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError("--record", "", f"{opts.path}: cannot create folder {folder}: "
+                          f"{exc.strerror or exc}") from None
     if not os.access(folder, os.W_OK | os.X_OK) or (
             opts.path.exists() and not os.access(opts.path, os.W_OK)):
         raise ConfigError("--record", "", f"{opts.path}: this user may not write it")

@@ -409,13 +409,18 @@ async def test_a_second_start_is_refused_and_an_existing_file_is_kept(tmp_path):
 
 
 def test_oralnavd_record_refuses_a_bad_path_before_anything_starts(tmp_path, capsys):
-    """Item 1: ``oralnavd --record`` checks its file with the configuration: a missing
-    folder, a name that is no ``.mcap`` or a bad decimation is exit 2 naming ``--record``;
-    a good one passes ``--check`` without creating the file."""
+    """Item 1: ``oralnavd --record`` checks its file with the configuration: a folder it
+    cannot make, a name that is no ``.mcap`` or a bad decimation is exit 2 naming
+    ``--record``; a good one passes ``--check`` without creating the file (its folder is
+    made, as for every output on the command line)."""
     from oralnav.daemon.main import run
 
-    assert run(["--check", "--record", str(tmp_path / "no" / "x.mcap")]) == 2
-    assert "--record" in (err := capsys.readouterr().err) and "does not exist" in err
+    (tmp_path / "file").write_text("")
+    assert run(["--check", "--record", str(tmp_path / "file" / "x.mcap")]) == 2
+    assert "--record" in (err := capsys.readouterr().err) and "cannot create folder" in err
+    assert run(["--check", "--record", str(tmp_path / "new" / "x.mcap")]) == 0
+    assert (tmp_path / "new").is_dir() and not (tmp_path / "new" / "x.mcap").exists()
+    capsys.readouterr()
     assert run(["--check", "--record", str(tmp_path / "x.txt")]) == 2
     assert ".mcap" in capsys.readouterr().err
     assert run(["--check", "--record", str(tmp_path / "x.mcap"), "--record-every", "0"]) == 2
