@@ -48,6 +48,9 @@ ROOT = Path(__file__).resolve().parents[2]
 ARTIFACTS = Path(os.environ.get("ORALNAV_ARTIFACTS", ROOT / "test-artifacts"))
 #: s: the longest wait for anything the console should show
 WAIT_S = 30.0
+#: s: the longest wait for a stage of the procedure (the busy-demo benchmark saw whole
+#: procedures of 55 s with every core busy)
+SLOW_WAIT_S = 120.0
 
 
 @pytest.fixture
@@ -160,8 +163,16 @@ def test_a_surgeon_runs_and_stops_the_procedure_from_the_console(daemon, browser
     d.find_element(By.CSS_SELECTOR, "button[data-post='/procedure/start']").click()
     _wait("RUNNING", lambda: by_id("state").text == "RUNNING")
 
-    # mid-procedure: the page goes away; the daemon goes on without it
-    _wait("the intra-oral stages", lambda: by_id("stage").text in ("adjust", "targets"))
+    def stage(*names: str) -> bool:
+        """The console shows one of ``names``; a stop of the procedure fails at once."""
+        if by_id("state").text in ("FAULT", "ESTOP", "READY"):
+            st = httpx.get(f"{base}/status", headers=head).json()
+            raise AssertionError(f"the procedure stopped: {st['safety']}, {st['procedure']}")
+        return by_id("stage").text in names
+
+    # mid-procedure: the page goes away; the daemon goes on without it. (The stages take
+    # as long as tracking makes them: longer on a busy machine, hence the longer waits.)
+    _wait("the intra-oral stages", lambda: stage("adjust", "targets"), SLOW_WAIT_S)
     d.get("about:blank")
     time.sleep(1.0)
     st = httpx.get(f"{base}/status", headers=head).json()
@@ -170,8 +181,8 @@ def test_a_surgeon_runs_and_stops_the_procedure_from_the_console(daemon, browser
     _wait("the console back, live", lambda: by_id("link").text == "live")
     _wait("the truth after reconnecting", lambda: by_id("state").text == "RUNNING")
     # the surgeon's choice is the first target visited
-    _wait("the selected target steered to", lambda: by_id("stage").text == "targets"
-          and by_id("target").text == "stitch_3")
+    _wait("the selected target steered to", lambda: stage("targets")
+          and by_id("target").text == "stitch_3", SLOW_WAIT_S)
     _wait("the views updating again", lambda: d.find_elements(
         By.CSS_SELECTOR, "figure.view[data-camera=left][data-counter]"))
     time.sleep(0.5)  # one more view round, for the picture
