@@ -27,15 +27,14 @@ from oralnav.daemon.core import DaemonCore
 from oralnav.daemon.igtl import (
     DEVICE_NAME_BYTES,
     FRAME_NAMES,
-    REPLY_DEVICE,
     IgtlServer,
-    IgtlSockets,
     device_name,
     epoch_offset,
     running,
     targets_from_points,
     to_igtl_matrix,
 )
+from oralnav.daemon.igtl_sockets import REPLY_DEVICE, IgtlSockets
 from oralnav.daemon.schemas import SutureTarget
 from oralnav.realtime.control_loop import STATUS_DTYPE
 from oralnav.safety.states import SafetyState
