@@ -173,6 +173,16 @@ class SafetySection(Strict):
         return v
 
 
+def _loopback_unless_allowed(host: str, info: ValidationInfo, server: str) -> str:
+    """``host`` when it is a loopback address or the section sets ``allow_remote = true``
+    (declared before ``host``, so that ``info.data`` has it); ValueError naming
+    ``server`` otherwise."""
+    if not ApiSection.is_loopback(host) and info.data.get("allow_remote") is not True:
+        raise ValueError(f"{host!r} is not a loopback address; {server} binds remote "
+                         "interfaces only with allow_remote = true")
+    return host
+
+
 class ApiSection(Strict):
     """The operator REST API (docs/api.md).
 
@@ -256,10 +266,7 @@ class ApiSection(Strict):
     @classmethod
     def _loopback_unless_allowed(cls, v: str, info: ValidationInfo) -> str:
         # a surgical robot's command port must not face the network by accident
-        if not cls.is_loopback(v) and info.data.get("allow_remote") is not True:
-            raise ValueError(f"{v!r} is not a loopback address; the operator API binds "
-                             "remote interfaces only with allow_remote = true")
-        return v
+        return _loopback_unless_allowed(v, info, "the operator API")
 
 
 class IgtlSection(Strict):
@@ -283,10 +290,7 @@ class IgtlSection(Strict):
     @classmethod
     def _loopback_unless_allowed(cls, v: str, info: ValidationInfo) -> str:
         # anyone who reaches this port may set suture targets: never the network by accident
-        if not ApiSection.is_loopback(v) and info.data.get("allow_remote") is not True:
-            raise ValueError(f"{v!r} is not a loopback address; the OpenIGTLink server binds "
-                             "remote interfaces only with allow_remote = true")
-        return v
+        return _loopback_unless_allowed(v, info, "the OpenIGTLink server")
 
 
 class InputsSection(Strict):
