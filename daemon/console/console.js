@@ -132,8 +132,22 @@ function connect() {
     if (S.ws !== ws || !S.token) return;
     const wait = RECONNECT_MS[Math.min(S.wsTries, RECONNECT_MS.length - 1)];
     S.wsTries += 1;
-    setTimeout(connect, wait);
+    setTimeout(reconnect, wait);
   };
+}
+
+async function reconnect() {
+  // ask first whether the token still holds: a refused token signs out (api() does) rather
+  // than retrying a websocket the daemon refuses, each refusal counting toward a lockout
+  if (!S.token) return;
+  const r = await api("GET", "/session");
+  if (r.ok) {
+    connect();
+  } else if (S.token) {  // the daemon unreachable, or busy: try again later
+    const wait = RECONNECT_MS[Math.min(S.wsTries, RECONNECT_MS.length - 1)];
+    S.wsTries += 1;
+    setTimeout(reconnect, wait);
+  }
 }
 
 function setLink(up) {
