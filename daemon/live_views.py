@@ -37,6 +37,8 @@ AXIS_M = 0.01
 MIN_WIDTH, MAX_WIDTH = 64, 1920
 #: JPEG quality bounds (OpenCV's scale, 0-100).
 MIN_QUALITY, MAX_QUALITY = 10, 95
+#: JPEG sizes kept per camera (consoles of different window sizes)
+MAX_SIZES = 4
 
 
 class NoFrame(LookupError):
@@ -75,7 +77,8 @@ class LiveViews:
         self.max_hz = float(max_hz)
         self.clock = clock
         self._latest: dict[str, _Latest] = {}
-        self._cache: dict[str, _Encoded] = {}
+        #: camera -> (width, quality) -> the last JPEG made at that size
+        self._cache: dict[str, dict[tuple[int, int], _Encoded]] = {}
         self._encode_lock = threading.Lock()  # one encode at a time, across consoles
         #: encodes done and the seconds they took, for the status and the benchmark
         self.encodes = 0
@@ -124,29 +127,35 @@ class LiveViews:
              ) -> tuple[bytes, int, float]:
         """``camera``'s newest frame as JPEG, ``width`` px wide at most (aspect kept),
         and its frame counter and capture instant (s). Blocking (resize and encode): call
-        it in a worker thread. Within ``1 / max_hz`` s of the last encode of this camera
-        it returns that JPEG again. Raises :class:`NoFrame` and ``ValueError`` (width or
-        quality out of bounds)."""
+        it in a worker thread. A JPEG of that frame at that size and quality is encoded
+        once; within ``1 / max_hz`` s of this camera's last encode, at any size, the
+        newest JPEG already made of it is returned instead (perhaps of another size: the
+        browser scales it), so consoles of several sizes cannot multiply the encodes.
+        Raises :class:`NoFrame` and ``ValueError`` (width or quality out of bounds)."""
         if not MIN_WIDTH <= width <= MAX_WIDTH:
             raise ValueError(f"width must be {MIN_WIDTH}..{MAX_WIDTH} px, got {width}")
         if not MIN_QUALITY <= quality <= MAX_QUALITY:
             raise ValueError(f"quality must be {MIN_QUALITY}..{MAX_QUALITY}, got {quality}")
-        latest = self._get(camera)
+        self._get(camera)  # NoFrame before waiting for the lock
         with self._encode_lock:
             now = time.monotonic()
-            cached = self._cache.get(camera)
-            if cached is not None and cached.width == width and cached.quality == quality \
-                    and (cached.counter == latest.frame.counter
-                         or now - cached.at < 1.0 / self.max_hz):
-                return cached.jpeg, cached.counter, cached.stamp
-            latest = self._get(camera)  # the newest, after waiting for the lock
+            latest = self._get(camera)
+            made = self._cache.setdefault(camera, {})
+            same = made.get((width, quality))
+            if same is not None and same.counter == latest.frame.counter:
+                return same.jpeg, same.counter, same.stamp
+            newest = max(made.values(), key=lambda e: e.at, default=None)
+            if newest is not None and now - newest.at < 1.0 / self.max_hz:
+                return newest.jpeg, newest.counter, newest.stamp
             data = _encode(latest.frame.image, width, quality)
             done = time.monotonic()
             self.encodes += 1
             self.encode_s += done - now
             enc = _Encoded(int(latest.frame.counter), width, quality, done, data,
                            float(latest.frame.timestamp))
-            self._cache[camera] = enc
+            made[(width, quality)] = enc
+            if len(made) > MAX_SIZES:  # the sizes no console asked for lately go
+                del made[min(made, key=lambda k: made[k].at)]
             return enc.jpeg, enc.counter, enc.stamp
 
     # -- internals ------------------------------------------------------------------------

@@ -6,7 +6,7 @@
 "use strict";
 
 const KEY = "oralnav.token";          // sessionStorage: the token lives as long as the tab
-const VIEW_WIDTH = 640;               // px asked of the daemon per view (it downscales)
+const VIEW_WIDTH = [64, 1920];        // px a view may ask of the daemon (it downscales)
 const RECONNECT_MS = [250, 500, 1000, 2000, 4000];  // websocket back-off, then 4 s
 
 const S = {
@@ -275,6 +275,14 @@ function pull(v) {
   showView(v);
 }
 
+function viewWidth(v) {
+  // the width the view is shown at, in device pixels, in steps of 64 (a few sizes, so the
+  // daemon's cache of the last JPEG serves every console of one size): no pixel decoded
+  // that the screen does not show
+  const px = (v.card.clientWidth || 640) * (window.devicePixelRatio || 1);
+  return Math.min(VIEW_WIDTH[1], Math.max(VIEW_WIDTH[0], Math.ceil(px / 64) * 64));
+}
+
 function viewCard(name) {
   let v = S.views.get(name);
   if (v) return v;
@@ -300,7 +308,7 @@ async function showView(v) {
   v.busy = true;
   v.last = performance.now();
   try {
-    const r = await fetch(`/views/${encodeURIComponent(meta.name)}/image?width=${VIEW_WIDTH}`,
+    const r = await fetch(`/views/${encodeURIComponent(meta.name)}/image?width=${viewWidth(v)}`,
                           { headers: { Authorization: `Bearer ${S.token}` } }).catch(() => null);
     if (!r || !r.ok) return;
     const blob = await r.blob();

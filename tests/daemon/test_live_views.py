@@ -88,8 +88,9 @@ def test_overlay_projects_the_estimated_pose_in_each_camera():
 
 def test_jpeg_is_downscaled_and_encoded_at_most_max_hz_per_camera():
     """Item 1 "at a rate the operator can set, never slowing tracking": a console
-    polling faster than ``max_hz`` gets the previous JPEG again (no encode); a new frame
-    after 1/max_hz is encoded; the image is downscaled to the width asked."""
+    polling faster than ``max_hz`` gets the previous JPEG again (no encode), whatever
+    size it asks; a new frame after 1/max_hz is encoded; the image is downscaled to the
+    width asked; a frame already encoded at a size is served from the cache."""
     now = [0.0]
     views, rig = LiveViews(max_hz=5.0, clock=lambda: now[0]), _rig()
     views.tap(_round(1, rig, _pose()))
@@ -100,10 +101,16 @@ def test_jpeg_is_downscaled_and_encoded_at_most_max_hz_per_camera():
     again, counter, _ = views.jpeg("left", width=320)  # within 0.2 s: the same bytes
     assert again is data and counter == 1 and views.encodes == 1
     time.sleep(0.21)
-    _, counter, _ = views.jpeg("left", width=320)
+    small, counter, _ = views.jpeg("left", width=320)
     assert counter == 2 and views.encodes == 2
+    # another console's size within the period: the newest JPEG (the browser scales it),
+    # so consoles of several sizes cannot multiply the encodes
+    assert views.jpeg("left", width=480)[0] is small and views.encodes == 2
+    time.sleep(0.21)
     big, _, _ = views.jpeg("left", width=1920)  # never upscaled
     assert cv2.imdecode(np.frombuffer(big, np.uint8), 0).shape == (480, 640)
+    assert views.jpeg("left", width=320)[0] is small  # that frame at that size: kept
+    assert views.encodes == 3
 
 
 def test_unknown_camera_and_bad_sizes_are_clear_errors():
