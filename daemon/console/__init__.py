@@ -17,11 +17,12 @@ __all__ = ["CONSOLE_DIR", "SECURITY_HEADERS", "index_html"]
 #: The folder of the console's files (``index.html``, ``console.js``, ``console.css``).
 CONSOLE_DIR = Path(__file__).resolve().parent
 
-#: Sent with the page: its script and style come from the daemon only, images from the
-#: daemon or the blob URLs the page makes of them, connections to the daemon only
-#: (``'self'`` covers ws:/wss: to the same host in current browsers); never framed.
+#: Sent with the page: its script and style come from the daemon only, images too (the
+#: views are fetched and drawn on canvases; ``data:`` for the empty icon), connections to
+#: the daemon only (``'self'`` covers ws:/wss: to the same host in current browsers);
+#: never framed.
 SECURITY_HEADERS = {
-    "Content-Security-Policy": "default-src 'self'; img-src 'self' blob: data:; "
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; "
                                "connect-src 'self'; frame-ancestors 'none'; "
                                "base-uri 'none'; form-action 'none'",
     "X-Content-Type-Options": "nosniff",

@@ -16,7 +16,7 @@ const S = {
   status: null,                       // the newest /status document (telemetry)
   targets: [], tre: {},
   fps: 5, overlay: true,
-  views: new Map(),                   // camera -> {card, img, canvas, label, counter, meta}
+  views: new Map(),                   // camera -> {card, canvas, label, counter, meta, ...}
   shown: 0, shownSince: performance.now(),
 };
 
@@ -97,7 +97,7 @@ function signOut(why) {
   if (S.ws) { S.ws.onclose = null; S.ws.close(); S.ws = null; }
   for (const v of S.views.values()) {
     clearTimeout(v.timer);
-    if (v.url) URL.revokeObjectURL(v.url);
+    if (v.bitmap) v.bitmap.close();
   }
   S.views.clear();
   $("views").replaceChildren();
@@ -159,9 +159,9 @@ function setLink(up) {
 // -- what the status says -----------------------------------------------------------------
 function showState(state, why) {
   const el = $("state");
-  el.textContent = state;
-  el.dataset.state = state;
-  if (why !== null) $("why").textContent = why;
+  setText(el, state);
+  if (el.dataset.state !== state) el.dataset.state = state;
+  if (why !== null) setText($("why"), why);
 }
 
 function fmt(x, digits) {
@@ -174,23 +174,34 @@ function showStatus(st) {
   const reasons = (sf.reasons || []).map((c) => `${c.source}: ${c.reason}`);
   const why = reasons.join("; ") || sf.not_ready_reason || "";
   showState(sf.state || "UNKNOWN", why);
-  const list = $("reasons");
-  list.replaceChildren(...reasons.map((t) => li(t)));
-  if (!reasons.length && sf.not_ready_reason) list.append(li(`not ready: ${sf.not_ready_reason}`));
-  const hist = (sf.history || []).slice(-8).reverse();
-  $("history").replaceChildren(...hist.map((h) =>
-    li(`${h.from} -> ${h.to} (${h.who}: ${h.reason})`)));
+  if (!reasons.length && sf.not_ready_reason) reasons.push(`not ready: ${sf.not_ready_reason}`);
+  setList($("reasons"), reasons);
+  setList($("history"), (sf.history || []).slice(-8).reverse().map((h) =>
+    `${h.from} -> ${h.to} (${h.who}: ${h.reason})`));
 
   const p = st.procedure || {};
-  $("stage").textContent = p.done ? "done" : (p.stage || "-");
+  setText($("stage"), p.done ? "done" : (p.stage || "-"));
   const next = p.target || (p.remaining && p.remaining[0]) || st.selected_target || "-";
-  $("target").textContent = next;
-  $("error").textContent = p.error_mm === undefined ? "-" :
-    `${fmt(p.error_mm, 3)} mm, ${fmt(p.error_deg, 2)} deg`;
+  setText($("target"), next);
+  setText($("error"), p.error_mm === undefined ? "-" :
+    `${fmt(p.error_mm, 3)} mm, ${fmt(p.error_deg, 2)} deg`);
   S.tre = p.tre_mm || {};
   const reached = Object.entries(S.tre).map(([n, v]) => `${n} ${fmt(v, 3)} mm`);
-  $("reached").textContent = reached.join(", ") || "-";
+  setText($("reached"), reached.join(", ") || "-");
   markTargets(next, st.selected_target);
+}
+
+// The status comes five times a second and mostly says the same: the page is only
+// written (laid out, painted) where it changed.
+function setText(el, text) {
+  if (el.textContent !== text) el.textContent = text;
+}
+
+function setList(el, items) {
+  const key = items.join("\n");
+  if (el.dataset.key === key) return;
+  el.dataset.key = key;
+  el.replaceChildren(...items.map((t) => li(t)));
 }
 
 function li(text) {
@@ -235,10 +246,13 @@ function markTargets(current, selected) {
   for (const row of $("targets").children) {
     const name = row.dataset.name;
     if (!name) continue;
-    row.dataset.current = String(name === current);
+    if (row.dataset.current !== String(name === current)) {
+      row.dataset.current = String(name === current);
+    }
     const tre = S.tre[name];
-    if (tre !== undefined) row.querySelector(".tre").textContent = `TRE ${fmt(tre, 3)} mm`;
-    row.title = name === selected ? "selected by the surgeon" : "";
+    if (tre !== undefined) setText(row.querySelector(".tre"), `TRE ${fmt(tre, 3)} mm`);
+    const title = name === selected ? "selected by the surgeon" : "";
+    if (row.title !== title) row.title = title;
   }
 }
 
@@ -289,16 +303,16 @@ function viewCard(name) {
   const card = document.createElement("figure");
   card.className = "view";
   card.dataset.camera = name;
-  const img = document.createElement("img");
-  img.alt = `camera ${name}`;
+  // one canvas holds the frame and the fields drawn on it: one layer painted per frame
   const canvas = document.createElement("canvas");
+  canvas.setAttribute("role", "img");
+  canvas.setAttribute("aria-label", `camera ${name}`);
   const label = document.createElement("figcaption");
   label.className = "label";
-  card.append(img, canvas, label);
+  card.append(canvas, label);
   $("views").append(card);
-  v = { card, img, canvas, label, counter: -1, meta: null, shownMeta: null, url: null,
+  v = { card, canvas, label, counter: -1, meta: null, shownMeta: null, bitmap: null,
         busy: false, last: -Infinity, timer: null };
-  img.addEventListener("load", () => drawOverlay(v));
   S.views.set(name, v);
   return v;
 }
@@ -311,14 +325,15 @@ async function showView(v) {
     const r = await fetch(`/views/${encodeURIComponent(meta.name)}/image?width=${viewWidth(v)}`,
                           { headers: { Authorization: `Bearer ${S.token}` } }).catch(() => null);
     if (!r || !r.ok) return;
-    const blob = await r.blob();
     const counter = Number(r.headers.get("X-Frame-Counter"));
-    if (v.url) URL.revokeObjectURL(v.url);
-    v.url = URL.createObjectURL(blob);
+    const bitmap = await createImageBitmap(await r.blob()).catch(() => null);
+    if (!bitmap) return;
+    if (v.bitmap) v.bitmap.close();
+    v.bitmap = bitmap;
     v.counter = counter;
     // the overlay of the frame shown (the newest meta may already be a frame further)
     v.shownMeta = meta.counter === counter ? meta : v.meta;
-    v.img.src = v.url;
+    drawView(v);
     v.card.dataset.counter = String(counter);
     S.shown += 1;
     const fields = meta.fields.map((f) => `${f.name} (${f.corners})`).join(", ");
@@ -340,20 +355,24 @@ function text(tag, content, cls) {
 
 const COLOURS = { robot: "#4fc3f7", opener: "#ffd54f", effector: "#81c784" };
 
-function drawOverlay(v) {
-  const { img, canvas } = v;
+function drawView(v) {
+  const { canvas, bitmap } = v;
   const meta = v.shownMeta;
-  if (canvas.width !== img.clientWidth || canvas.height !== img.clientHeight) {
-    canvas.width = img.clientWidth;  // reallocates: only when the shown size changed
-    canvas.height = img.clientHeight;
+  if (!bitmap) return;
+  const dpr = window.devicePixelRatio || 1;
+  const w = Math.max(1, Math.round(v.card.clientWidth * dpr));
+  const h = Math.max(1, Math.round(w * bitmap.height / bitmap.width));
+  if (canvas.width !== w || canvas.height !== h) {
+    canvas.width = w;  // reallocates: only when the shown size changed
+    canvas.height = h;
   }
   const g = canvas.getContext("2d");
-  g.clearRect(0, 0, canvas.width, canvas.height);
+  g.drawImage(bitmap, 0, 0, w, h);
   if (!S.overlay || !meta) return;
-  const k = canvas.width / meta.width;  // frame pixels -> shown pixels
+  const k = w / meta.width;  // frame pixels -> canvas pixels
+  g.lineWidth = 2 * dpr;
   for (const f of meta.fields) {
     g.strokeStyle = COLOURS[f.name] || "#ff80ab";
-    g.lineWidth = 2;
     if (f.hull.length > 2) {
       g.beginPath();
       f.hull.forEach(([x, y], i) => (i ? g.lineTo(x * k, y * k) : g.moveTo(x * k, y * k)));
@@ -370,8 +389,8 @@ function drawOverlay(v) {
         g.stroke();
       });
       g.fillStyle = COLOURS[f.name] || "#ff80ab";
-      g.font = "13px system-ui, sans-serif";
-      g.fillText(f.name, o[0] * k + 6, o[1] * k - 6);
+      g.font = `${13 * dpr}px system-ui, sans-serif`;
+      g.fillText(f.name, o[0] * k + 6 * dpr, o[1] * k - 6 * dpr);
     }
   }
 }
@@ -421,9 +440,9 @@ function wire() {
   });
   $("overlay").addEventListener("change", (ev) => {
     S.overlay = ev.target.checked;
-    for (const v of S.views.values()) drawOverlay(v);
+    for (const v of S.views.values()) drawView(v);
   });
-  window.addEventListener("resize", () => { for (const v of S.views.values()) drawOverlay(v); });
+  window.addEventListener("resize", () => { for (const v of S.views.values()) drawView(v); });
   document.addEventListener("visibilitychange", () => {
     for (const v of S.views.values()) pull(v);  // a tab shown again catches up at once
   });
