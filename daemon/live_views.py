@@ -125,7 +125,8 @@ class LiveViews:
 
     def jpeg(self, camera: str, width: int = 640, quality: int = 70
              ) -> tuple[bytes, int, float]:
-        """``camera``'s newest frame as JPEG, ``width`` px wide at most (aspect kept),
+        """``camera``'s newest frame as JPEG, at least ``width`` px wide (less than a
+        whole downscale factor more; the frame's own width at most; aspect kept),
         and its frame counter and capture instant (s). Blocking (resize and encode): call
         it in a worker thread. A JPEG of that frame at that size and quality is encoded
         once; within ``1 / max_hz`` s of this camera's last encode, at any size, the
@@ -183,13 +184,15 @@ class LiveViews:
 
 
 def _encode(image: np.ndarray, width: int, quality: int) -> bytes:
-    """``image`` (mono8 or BGR) at ``width`` px wide at most, as JPEG bytes."""
+    """``image`` (mono8 or BGR) downscaled by the largest whole factor that keeps it at
+    least ``width`` px wide, as JPEG bytes. A whole factor is OpenCV's fast area-averaging
+    path (1920 -> 640 px: 1.4 ms; to 448 px, a factor of 4.3, it took 3.1 ms on the
+    development VM), and the browser scales the few pixels more itself."""
     h, w = image.shape[:2]
-    if w > width:  # INTER_AREA: the anti-aliased downscale (no moire on the fields)
-        image = cv2.resize(image, (width, max(1, round(h * width / w))),
-                           interpolation=cv2.INTER_AREA)
+    k = max(1, w // width)
+    if k > 1:  # INTER_AREA: the anti-aliased downscale (no moire on the fields)
+        image = cv2.resize(image, (w // k, h // k), interpolation=cv2.INTER_AREA)
     ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:  # pragma: no cover - OpenCV encodes any 8-bit image
         raise RuntimeError("JPEG encoding failed")
     return buf.tobytes()
-
