@@ -96,6 +96,12 @@ def _left_counter(base: str, head: dict[str, str]) -> tuple[int, float]:
     return int(left["counter"]), time.monotonic()
 
 
+def _cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) process ``pid`` has used (Linux ``/proc``)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def _shown(driver: Any) -> dict[str, int]:
     from selenium.webdriver.common.by import By
 
@@ -114,6 +120,8 @@ class _RemoteConsole:
 
         self.base, self.token, self.period = base, token, 1.0 / fps
         self.shown: dict[str, int] = {}
+        #: s of CPU this client's thread used (its share of this machine)
+        self.cpu_s = 0.0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="remote console",
                                         daemon=True)
@@ -136,7 +144,9 @@ class _RemoteConsole:
         with httpx.Client(base_url=self.base, headers=head, timeout=2.0) as api, \
                 connect(url) as ws:
             ws.send(json.dumps({"subscribe": ["status", "views"]}))
+            cpu0 = time.thread_time()
             while not self._stop.is_set():
+                self.cpu_s = time.thread_time() - cpu0
                 try:
                     doc = json.loads(ws.recv(timeout=0.5))
                 except TimeoutError:
@@ -190,10 +200,16 @@ def main(out: Path, *, seconds: float = 20.0, fps: int = 10, rounds: int = 2
                         time.sleep(1.0)
                         before = dict(remote.shown)
                 n0, t0 = _left_counter(base, head)
+                c0 = _cpu_s(proc.pid)
+                client0 = remote.cpu_s if remote is not None else 0.0
                 time.sleep(seconds)
                 n1, t1 = _left_counter(base, head)
+                # the daemon's main process (tracking, API; the control loop is a child)
                 w: dict[str, Any] = {"mode": mode, "seconds": t1 - t0,
-                                     "tracking_hz": (n1 - n0) / (t1 - t0)}
+                                     "tracking_hz": (n1 - n0) / (t1 - t0),
+                                     "daemon_cores": (_cpu_s(proc.pid) - c0) / (t1 - t0)}
+                if remote is not None:
+                    w["client_cores"] = (remote.cpu_s - client0) / (t1 - t0)
                 if mode != "closed":
                     after = _shown(driver) if remote is None else dict(remote.shown)
                     w["shown_hz"] = {c: (after[c] - before.get(c, after[c])) / (t1 - t0)
@@ -202,7 +218,10 @@ def main(out: Path, *, seconds: float = 20.0, fps: int = 10, rounds: int = 2
                     remote.__exit__(None, None, None)
                 windows.append(w)
                 shown = ", ".join(f"{c} {v:.2f}" for c, v in w.get("shown_hz", {}).items())
-                _say(f"console {mode}: tracking {w['tracking_hz']:.2f} rounds/s"
+                _say(f"console {mode}: tracking {w['tracking_hz']:.2f} rounds/s, daemon "
+                     f"{w['daemon_cores']:.2f} cores"
+                     + (f", remote client {w['client_cores']:.3f} cores"
+                        if "client_cores" in w else "")
                      + (f"; frames shown per s: {shown}" if shown else ""))
     finally:
         if driver is not None:
@@ -219,12 +238,15 @@ def main(out: Path, *, seconds: float = 20.0, fps: int = 10, rounds: int = 2
 
     closed = median("closed")
     doc: dict[str, Any] = {"seconds": seconds, "fps_setting": fps, "rounds": rounds,
-                           "cpus": os.cpu_count(), "tracking_hz_closed": closed}
+                           "cpus": os.cpu_count(), "tracking_hz_closed": closed,
+                           "daemon_cores_closed": median("closed", "daemon_cores")}
     for mode in ("browser", "remote"):
         on = median(mode)
         shown = [v for w in windows if w["mode"] == mode for v in w["shown_hz"].values()]
         doc[mode] = {"tracking_hz": on, "tracking_change_pct": 100.0 * (on - closed) / closed,
-                     "console_fps_per_view": statistics.median(shown) if shown else None}
+                     "console_fps_per_view": statistics.median(shown) if shown else None,
+                     "daemon_cores": median(mode, "daemon_cores")}
+    doc["remote"]["client_cores"] = median("remote", "client_cores")
     doc["windows"] = windows
     (out / "console.json").write_text(json.dumps(doc, indent=2))
     return doc

@@ -472,13 +472,17 @@ def cmd_bench_console(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(s))
     else:
-        print(f"tracking {s['tracking_hz_closed']:.2f} rounds/s with the console closed")
+        print(f"tracking {s['tracking_hz_closed']:.2f} rounds/s with the console closed "
+              f"(daemon {s['daemon_cores_closed']:.2f} cores)")
         for mode, where in (("browser", "open in a browser on this machine"),
                             ("remote", "open on another machine (its requests only)")):
             m, fps = s[mode], s[mode]["console_fps_per_view"]
             print(f"  {m['tracking_hz']:.2f} rounds/s {where} ({m['tracking_change_pct']:+.1f}"
-                  f" %); {'-' if fps is None else f'{fps:.2f}'} frames/s per view shown "
+                  f" %; daemon {m['daemon_cores']:.2f} cores); "
+                  f"{'-' if fps is None else f'{fps:.2f}'} frames/s per view shown "
                   f"(setting {s['fps_setting']})")
+        print(f"  (the remote console's client itself used {s['remote']['client_cores']:.3f} "
+              "cores of this machine)")
     return 0 if s["remote"]["tracking_change_pct"] >= -5.0 else 1
 
 
