@@ -2,18 +2,20 @@
 and the tracking rate with the console open, no drop beyond 5 %).
 
 ``oralnav bench console --out DIR [--seconds S] [--fps F] [--rounds N] [--json]`` starts
-``oralnavd`` on the embedded simulated cell (its own process, a free loopback port, state
-in DIR), waits until it is READY, then alternates windows of ``S`` seconds without and
-with the console open in Debian's headless chromium (Selenium through chromedriver),
-signed in with the operator token, at ``F`` frames per second (the console's own
-setting), ``N`` times each (ABAB..., so that a drift of the machine falls on both). In
-each window it counts the tracked rounds from the left camera's frame counter
-(``GET /views`` at the window's start and end: the simulated cell renders a frame per
-round) and, with the console open, the frames each view showed (its ``data-counter``).
-It writes ``console.json`` into DIR and prints the summary: the tracking rate with and
-without (median over the windows) and its change, and the console's frames per second
-per view. Needs the ``test`` extra (selenium) and the Debian packages chromium and
-chromium-driver.
+``oralnavd`` on the embedded simulated cell in a process of its own (the fault campaign's
+``Daemon``: a configuration, a tokens file and the logs in DIR, a free loopback port),
+waits until it is READY, then ``N`` times runs three windows of ``S`` seconds: the console
+closed; open in Debian's headless chromium on this machine (Selenium through
+chromedriver), signed in with the operator token, at ``F`` frames per second (the
+console's own setting); and open "on another machine": the console's own requests (the
+telemetry websocket subscribed to ``status`` and ``views``, then each new frame's JPEG at
+640 px) from a client thread here, whose CPU is measured apart. Alternating them puts a
+drift of the machine on every kind. In each window it counts the tracked rounds from the
+left camera's frame counter (``GET /views`` at the window's start and end: the simulated
+cell renders a frame per round), the daemon's CPU, and the frames each view showed. It
+writes ``console.json`` into DIR and prints the summary: the tracking rate of each kind
+(medians over the windows) and its change, and the console's frames per second per view.
+Needs the ``test`` extra (selenium) and the Debian packages chromium and chromium-driver.
 """
 
 from __future__ import annotations
@@ -21,9 +23,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import signal
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -31,49 +31,18 @@ from typing import Any
 
 import httpx
 
-from oralnav.bench.busy_demo import free_port
+from oralnav.bench.faults import Daemon, free_port, write_daemon_config, write_tokens
 
-__all__ = ["main"]
-
-#: s: the daemon must be READY within this
-READY_TIMEOUT_S = 90.0
+__all__ = ["headless_chromium", "main"]
 
 
 def _say(msg: str) -> None:
     print(f"bench console: {msg}", file=sys.stderr, flush=True)
 
 
-def _start_daemon(folder: Path, port: int) -> subprocess.Popen:
-    env = dict(os.environ, STATE_DIRECTORY=str(folder), RUNTIME_DIRECTORY=str(folder))
-    (folder / "tokens.txt").unlink(missing_ok=True)  # a previous run's: not this daemon's
-    return subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main", "--api-port",
-                             str(port)], env=env, cwd=folder, stdout=subprocess.DEVNULL,
-                            stderr=open(folder / "oralnavd.log", "w"))  # noqa: SIM115
-
-
-def _wait_ready(proc: subprocess.Popen, base: str, folder: Path) -> dict[str, str]:
-    deadline = time.monotonic() + READY_TIMEOUT_S
-    tokens: dict[str, str] = {}
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"oralnavd exited ({proc.returncode}); see "
-                               f"{folder / 'oralnavd.log'}")
-        if not tokens and (folder / "tokens.txt").exists():
-            tokens = dict(line.split() for line in
-                          (folder / "tokens.txt").read_text().splitlines())
-        if tokens:
-            try:
-                st = httpx.get(f"{base}/status", timeout=1.0, headers={
-                    "Authorization": f"Bearer {tokens['operator']}"}).json()
-                if st["safety"]["state"] == "READY":
-                    return tokens
-            except (httpx.TransportError, KeyError, ValueError):
-                pass
-        time.sleep(0.2)
-    raise RuntimeError(f"oralnavd not READY within {READY_TIMEOUT_S:g} s")
-
-
-def _browser(width: int = 1280, height: int = 800) -> Any:
+def headless_chromium(width: int = 1280, height: int = 800) -> Any:
+    """Debian's chromium, headless at ``width`` x ``height``, driven by its chromedriver
+    through Selenium (nothing downloaded from a browser vendor)."""
     from selenium import webdriver
     from selenium.webdriver.chrome.options import Options
     from selenium.webdriver.chrome.service import Service
@@ -126,11 +95,11 @@ class _RemoteConsole:
         self._thread = threading.Thread(target=self._run, name="remote console",
                                         daemon=True)
 
-    def __enter__(self) -> _RemoteConsole:
+    def start(self) -> _RemoteConsole:
         self._thread.start()
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def stop(self) -> None:
         self._stop.set()
         self._thread.join(timeout=5)
 
@@ -162,75 +131,84 @@ class _RemoteConsole:
                     self.shown[name] = self.shown.get(name, 0) + 1
 
 
+def _window(mode: str, base: str, head: dict[str, str], pid: int, driver: Any, token: str,
+            fps: int, seconds: float) -> dict[str, Any]:
+    """One window of ``seconds`` with the console ``mode`` (``closed``, ``browser`` here,
+    ``remote``): the tracking rate, the daemon's CPU (its main process ``pid``: tracking,
+    API; the control loop is a child), the frames each view showed, and for ``remote``
+    the client's own CPU."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import Select
+
+    remote = None
+    if mode == "browser":
+        driver.get(base + "/")  # signed in still: the tab keeps the token
+        Select(driver.find_element(By.ID, "fps")).select_by_value(str(fps))
+        time.sleep(2.0)  # the page up and its views flowing
+        before = _shown(driver)
+    else:
+        driver.get("about:blank")
+        time.sleep(1.0)
+        if mode == "remote":
+            remote = _RemoteConsole(base, token, fps).start()
+            time.sleep(1.0)
+            before = dict(remote.shown)
+    try:
+        n0, t0 = _left_counter(base, head)
+        c0 = _cpu_s(pid)
+        client0 = remote.cpu_s if remote is not None else 0.0
+        time.sleep(seconds)
+        n1, t1 = _left_counter(base, head)
+        w: dict[str, Any] = {"mode": mode, "seconds": t1 - t0,
+                             "tracking_hz": (n1 - n0) / (t1 - t0),
+                             "daemon_cores": (_cpu_s(pid) - c0) / (t1 - t0)}
+        if remote is not None:
+            w["client_cores"] = (remote.cpu_s - client0) / (t1 - t0)
+        if mode != "closed":
+            after = _shown(driver) if remote is None else dict(remote.shown)
+            w["shown_hz"] = {c: (after[c] - before.get(c, after[c])) / (t1 - t0)
+                             for c in after}
+    finally:
+        if remote is not None:
+            remote.stop()
+    shown = ", ".join(f"{c} {v:.2f}" for c, v in w.get("shown_hz", {}).items())
+    _say(f"console {mode}: tracking {w['tracking_hz']:.2f} rounds/s, daemon "
+         f"{w['daemon_cores']:.2f} cores"
+         + (f", remote client {w['client_cores']:.3f} cores" if "client_cores" in w else "")
+         + (f"; frames shown per s: {shown}" if shown else ""))
+    return w
+
+
 def main(out: Path, *, seconds: float = 20.0, fps: int = 10, rounds: int = 2
          ) -> dict[str, Any]:
     """Run the measurement (module docstring); returns what ``console.json`` holds."""
     from selenium.webdriver.common.by import By
-    from selenium.webdriver.support.ui import Select
 
     out = out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     port = free_port()
     base = f"http://127.0.0.1:{port}"
-    proc = _start_daemon(out, port)
-    driver = None
+    token = write_tokens(out / "tokens.toml")
+    config = write_daemon_config(out / "oralnavd.toml", port=port,
+                                 tokens_file=out / "tokens.toml",
+                                 audit_log=out / "oralnav-audit.jsonl")
+    head = {"Authorization": f"Bearer {token}"}
     windows: list[dict[str, Any]] = []
-    try:
-        tokens = _wait_ready(proc, base, out)
-        head = {"Authorization": f"Bearer {tokens['operator']}"}
+    with Daemon(config, out / "oralnavd.log", port, token) as daemon:
+        daemon.wait_ready()
         _say(f"oralnavd READY on {base}; {rounds} x (closed, browser here, remote) "
              f"windows of {seconds:g} s")
-        driver = _browser()
-        driver.get(base + "/")
-        driver.find_element(By.ID, "token").send_keys(tokens["operator"])
-        driver.find_element(By.CSS_SELECTOR, "#login button").click()
-        for _ in range(rounds):
-            for mode in ("closed", "browser", "remote"):
-                remote = None
-                if mode == "browser":
-                    driver.get(base + "/")  # signed in still: the tab keeps the token
-                    Select(driver.find_element(By.ID, "fps")).select_by_value(str(fps))
-                    time.sleep(2.0)  # the page up and its views flowing
-                    before = _shown(driver)
-                else:
-                    driver.get("about:blank")
-                    time.sleep(1.0)
-                    if mode == "remote":
-                        remote = _RemoteConsole(base, tokens["operator"], fps).__enter__()
-                        time.sleep(1.0)
-                        before = dict(remote.shown)
-                n0, t0 = _left_counter(base, head)
-                c0 = _cpu_s(proc.pid)
-                client0 = remote.cpu_s if remote is not None else 0.0
-                time.sleep(seconds)
-                n1, t1 = _left_counter(base, head)
-                # the daemon's main process (tracking, API; the control loop is a child)
-                w: dict[str, Any] = {"mode": mode, "seconds": t1 - t0,
-                                     "tracking_hz": (n1 - n0) / (t1 - t0),
-                                     "daemon_cores": (_cpu_s(proc.pid) - c0) / (t1 - t0)}
-                if remote is not None:
-                    w["client_cores"] = (remote.cpu_s - client0) / (t1 - t0)
-                if mode != "closed":
-                    after = _shown(driver) if remote is None else dict(remote.shown)
-                    w["shown_hz"] = {c: (after[c] - before.get(c, after[c])) / (t1 - t0)
-                                     for c in after}
-                if remote is not None:
-                    remote.__exit__(None, None, None)
-                windows.append(w)
-                shown = ", ".join(f"{c} {v:.2f}" for c, v in w.get("shown_hz", {}).items())
-                _say(f"console {mode}: tracking {w['tracking_hz']:.2f} rounds/s, daemon "
-                     f"{w['daemon_cores']:.2f} cores"
-                     + (f", remote client {w['client_cores']:.3f} cores"
-                        if "client_cores" in w else "")
-                     + (f"; frames shown per s: {shown}" if shown else ""))
-    finally:
-        if driver is not None:
-            driver.quit()
-        proc.send_signal(signal.SIGTERM)
+        driver = headless_chromium()
         try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+            driver.get(base + "/")
+            driver.find_element(By.ID, "token").send_keys(token)
+            driver.find_element(By.CSS_SELECTOR, "#login button").click()
+            for _ in range(rounds):
+                for mode in ("closed", "browser", "remote"):
+                    windows.append(_window(mode, base, head, daemon.pid, driver, token, fps,
+                                           seconds))
+        finally:
+            driver.quit()
 
     def median(mode: str, key: str = "tracking_hz") -> float | None:
         vals = [w[key] for w in windows if w["mode"] == mode]

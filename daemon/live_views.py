@@ -80,9 +80,8 @@ class LiveViews:
         #: camera -> (width, quality) -> the last JPEG made at that size
         self._cache: dict[str, dict[tuple[int, int], _Encoded]] = {}
         self._encode_lock = threading.Lock()  # one encode at a time, across consoles
-        #: encodes done and the seconds they took, for the status and the benchmark
+        #: JPEGs encoded so far (the rate bound is checked on it)
         self.encodes = 0
-        self.encode_s = 0.0
 
     # -- the pipeline's side (event loop, must not block) -----------------------------------
     def tap(self, rnd: Any) -> None:
@@ -149,10 +148,8 @@ class LiveViews:
             if newest is not None and now - newest.at < 1.0 / self.max_hz:
                 return newest.jpeg, newest.counter, newest.stamp
             data = _encode(latest.frame.image, width, quality)
-            done = time.monotonic()
             self.encodes += 1
-            self.encode_s += done - now
-            enc = _Encoded(int(latest.frame.counter), width, quality, done, data,
+            enc = _Encoded(int(latest.frame.counter), width, quality, time.monotonic(), data,
                            float(latest.frame.timestamp))
             made[(width, quality)] = enc
             if len(made) > MAX_SIZES:  # the sizes no console asked for lately go

@@ -20,14 +20,13 @@ import os
 import shutil
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import httpx
 import pytest
 
-from .test_service import _free_port, _wait_for_api
+from .test_service import _free_port, _wait_for_api, start_oralnavd
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
@@ -57,10 +56,8 @@ SLOW_WAIT_S = 120.0
 def daemon(tmp_path: Path):
     """``oralnavd`` on the embedded simulated cell: (base URL, demo tokens)."""
     port = _free_port()
-    env = dict(os.environ, STATE_DIRECTORY=str(tmp_path), RUNTIME_DIRECTORY=str(tmp_path))
-    proc = subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main",
-                             "--api-port", str(port)], env=env, cwd=tmp_path,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    # its log in a file: a pipe nobody reads during the test would stall it when full
+    proc = start_oralnavd(tmp_path, port, log=tmp_path / "oralnavd.log")
     try:
         base = f"http://127.0.0.1:{port}"
         yield base, _wait_for_api(proc, base, tmp_path)
@@ -75,16 +72,9 @@ def daemon(tmp_path: Path):
 
 @pytest.fixture
 def browser():
-    from selenium import webdriver
-    from selenium.webdriver.chrome.options import Options
-    from selenium.webdriver.chrome.service import Service
+    from oralnav.bench.console import headless_chromium
 
-    opts = Options()
-    opts.binary_location = CHROMIUM
-    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage",
-                "--disable-gpu", "--window-size=1280,800"):
-        opts.add_argument(arg)
-    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
+    driver = headless_chromium()
     try:
         yield driver
     finally:

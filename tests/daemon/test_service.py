@@ -28,11 +28,26 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def start_oralnavd(folder: Path, port: int, log: Path | None = None) -> subprocess.Popen:
+    """``oralnavd`` on the embedded sim configuration, its API on ``port``, its state and
+    demo tokens in ``folder``; its output piped (read it when it has ended), or written
+    to ``log`` for a daemon that runs longer than a pipe's buffer holds."""
+    env = dict(os.environ, STATE_DIRECTORY=str(folder), RUNTIME_DIRECTORY=str(folder))
+    out = subprocess.PIPE if log is None else open(log, "w")  # noqa: SIM115
+    try:
+        return subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main",
+                                 "--api-port", str(port)], env=env, cwd=folder,
+                                stdout=out, stderr=out, text=True)
+    finally:
+        if log is not None:
+            out.close()  # the child holds its own descriptor
+
+
 def _wait_for_api(proc: subprocess.Popen, base: str, folder: Path) -> dict[str, str]:
     """Wait (at most 60 s) for the daemon's /health; its demo tokens by name."""
     deadline = time.monotonic() + 60
     while True:
-        assert proc.poll() is None, proc.stderr.read()
+        assert proc.poll() is None, proc.stderr.read() if proc.stderr else "oralnavd exited"
         try:
             if httpx.get(f"{base}/health", timeout=0.5).status_code == 200:
                 break
@@ -122,10 +137,7 @@ def test_sigterm_stops_the_robot_then_exits_cleanly(tmp_path: Path) -> None:
     command over HTTP, then SIGTERM: the daemon latches the stop, the control loop confirms
     it, and the process exits 0 within a few seconds."""
     port = _free_port()
-    env = dict(os.environ, STATE_DIRECTORY=str(tmp_path), RUNTIME_DIRECTORY=str(tmp_path))
-    proc = subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main",
-                             "--api-port", str(port)], env=env, cwd=tmp_path,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = start_oralnavd(tmp_path, port)
     try:
         base = f"http://127.0.0.1:{port}"
         tokens = _wait_for_api(proc, base, tmp_path)
