@@ -4,17 +4,20 @@ and the tracking rate with the console open, no drop beyond 5 %).
 ``oralnav bench console --out DIR [--seconds S] [--fps F] [--rounds N] [--json]`` starts
 ``oralnavd`` on the embedded simulated cell in a process of its own (the fault campaign's
 ``Daemon``: a configuration, a tokens file and the logs in DIR, a free loopback port),
-waits until it is READY, then ``N`` times runs three windows of ``S`` seconds: the console
-closed; open in Debian's headless chromium on this machine (Selenium through
-chromedriver), signed in with the operator token, at ``F`` frames per second (the
-console's own setting); and open "on another machine": the console's own requests (the
-telemetry websocket subscribed to ``status`` and ``views``, then each new frame's JPEG at
-640 px) from a client thread here, whose CPU is measured apart. Alternating them puts a
-drift of the machine on every kind. In each window it counts the tracked rounds from the
-left camera's frame counter (``GET /views`` at the window's start and end: the simulated
-cell renders a frame per round), the daemon's CPU, and the frames each view showed. It
-writes ``console.json`` into DIR and prints the summary: the tracking rate of each kind
-(medians over the windows) and its change, and the console's frames per second per view.
+waits until it is READY, then ``N`` times runs four windows of ``S`` seconds (the console
+closed, open in a browser here, closed, open "on another machine") and a last closed
+one, so every open window lies between two closed ones. "In a browser here": Debian's
+headless chromium on this machine (Selenium through chromedriver), signed in with the
+operator token, at ``F`` frames per second (the console's own setting). "On another
+machine": the console's own traffic (the telemetry websocket subscribed to ``status`` and
+``frames`` at ``F`` and 640 px) from a client thread here, whose CPU is measured apart.
+In each window it counts the tracked rounds from the left camera's frame counter
+(``GET /views`` at the window's start and end: the simulated cell renders a frame per
+round), the daemon's CPU, and the frames each view showed. An open window's change is
+against the mean of the closed windows either side of it: the machine drifts over a
+minute by as much as the effect measured, and bracketing takes the drift out. It writes
+``console.json`` into DIR and prints the summary: each kind's median change and range,
+and the console's frames per second per view.
 Needs the ``test`` extra (selenium) and the Debian packages chromium and chromium-driver.
 """
 
@@ -79,15 +82,15 @@ def _shown(driver: Any) -> dict[str, int]:
 
 
 class _RemoteConsole:
-    """The console's requests without a browser, as when the console runs on another
-    machine (a tablet): the telemetry websocket subscribed to ``status`` and ``views``,
-    and the JPEG of each camera whose counter moved, at most ``fps`` times a second per
-    camera, as ``console.js`` does; in a thread, until stopped."""
+    """The console's traffic without a browser, as when the console runs on another
+    machine (a tablet): the telemetry websocket subscribed to ``status`` and ``frames``
+    at ``fps`` and 640 px, as ``console.js`` does, each frame's header read and its JPEG
+    kept (not decoded: the other machine's work); in a thread, until stopped."""
 
     def __init__(self, base: str, token: str, fps: int) -> None:
         import threading
 
-        self.base, self.token, self.period = base, token, 1.0 / fps
+        self.base, self.token, self.fps = base, token, fps
         self.shown: dict[str, int] = {}
         #: s of CPU this client's thread used (its share of this machine)
         self.cpu_s = 0.0
@@ -106,28 +109,20 @@ class _RemoteConsole:
     def _run(self) -> None:
         from websockets.sync.client import connect
 
-        seen: dict[str, int] = {}
-        last: dict[str, float] = {}
         url = self.base.replace("http://", "ws://") + f"/telemetry?token={self.token}"
-        head = {"Authorization": f"Bearer {self.token}"}
-        with httpx.Client(base_url=self.base, headers=head, timeout=2.0) as api, \
-                connect(url) as ws:
-            ws.send(json.dumps({"subscribe": ["status", "views"]}))
+        with connect(url, max_size=2 ** 24) as ws:
+            ws.send(json.dumps({"subscribe": ["status", "frames"],
+                                "frames": {"fps": self.fps, "width": 640}}))
             cpu0 = time.thread_time()
             while not self._stop.is_set():
                 self.cpu_s = time.thread_time() - cpu0
                 try:
-                    doc = json.loads(ws.recv(timeout=0.5))
+                    msg = ws.recv(timeout=0.5)
                 except TimeoutError:
                     continue
-                for cam in doc.get("views", ()):
-                    name = cam["name"]
-                    now = time.monotonic()
-                    if seen.get(name) == cam["counter"] or \
-                            now - last.get(name, -1e9) < self.period:
-                        continue  # (the browser fetches it later; the count is the same)
-                    r = api.get(f"/views/{name}/image", params={"width": 640})
-                    seen[name], last[name] = int(r.headers["X-Frame-Counter"]), now
+                if isinstance(msg, bytes):  # a frame: header length, header, JPEG
+                    n = int.from_bytes(msg[:4], "big")
+                    name = json.loads(msg[4:4 + n])["camera"]
                     self.shown[name] = self.shown.get(name, 0) + 1
 
 
@@ -196,32 +191,44 @@ def main(out: Path, *, seconds: float = 20.0, fps: int = 10, rounds: int = 2
     windows: list[dict[str, Any]] = []
     with Daemon(config, out / "oralnavd.log", port, token) as daemon:
         daemon.wait_ready()
-        _say(f"oralnavd READY on {base}; {rounds} x (closed, browser here, remote) "
-             f"windows of {seconds:g} s")
+        _say(f"oralnavd READY on {base}; {rounds} x (closed, browser here, closed, remote) "
+             f"windows of {seconds:g} s, then closed")
         driver = headless_chromium()
         try:
             driver.get(base + "/")
             driver.find_element(By.ID, "token").send_keys(token)
             driver.find_element(By.CSS_SELECTOR, "#login button").click()
-            for _ in range(rounds):
-                for mode in ("closed", "browser", "remote"):
-                    windows.append(_window(mode, base, head, daemon.pid, driver, token, fps,
-                                           seconds))
+            order = [m for _ in range(rounds) for m in ("closed", "browser", "closed", "remote")]
+            for mode in [*order, "closed"]:
+                windows.append(_window(mode, base, head, daemon.pid, driver, token, fps,
+                                       seconds))
         finally:
             driver.quit()
+    return _summary(out, windows, seconds=seconds, fps=fps, rounds=rounds)
 
+
+def _summary(out: Path, windows: list[dict[str, Any]], *, seconds: float, fps: int,
+             rounds: int) -> dict[str, Any]:
+    """Each open window's change against the mean of the closed windows either side of
+    it (the machine's drift over a minute is of the size measured: bracketing takes it
+    out), the median change per kind and its range; writes ``console.json``."""
     def median(mode: str, key: str = "tracking_hz") -> float | None:
         vals = [w[key] for w in windows if w["mode"] == mode]
         return statistics.median(vals) if vals else None
 
-    closed = median("closed")
+    for i, w in enumerate(windows):
+        if w["mode"] != "closed":
+            ref = (windows[i - 1]["tracking_hz"] + windows[i + 1]["tracking_hz"]) / 2
+            w["tracking_change_pct"] = 100.0 * (w["tracking_hz"] - ref) / ref
     doc: dict[str, Any] = {"seconds": seconds, "fps_setting": fps, "rounds": rounds,
-                           "cpus": os.cpu_count(), "tracking_hz_closed": closed,
+                           "cpus": os.cpu_count(), "tracking_hz_closed": median("closed"),
                            "daemon_cores_closed": median("closed", "daemon_cores")}
     for mode in ("browser", "remote"):
-        on = median(mode)
+        changes = [w["tracking_change_pct"] for w in windows if w["mode"] == mode]
         shown = [v for w in windows if w["mode"] == mode for v in w["shown_hz"].values()]
-        doc[mode] = {"tracking_hz": on, "tracking_change_pct": 100.0 * (on - closed) / closed,
+        doc[mode] = {"tracking_hz": median(mode),
+                     "tracking_change_pct": statistics.median(changes),
+                     "tracking_change_pct_range": [min(changes), max(changes)],
                      "console_fps_per_view": statistics.median(shown) if shown else None,
                      "daemon_cores": median(mode, "daemon_cores")}
     doc["remote"]["client_cores"] = median("remote", "client_cores")

@@ -475,10 +475,12 @@ def cmd_bench_console(args: argparse.Namespace) -> int:
         print(f"tracking {s['tracking_hz_closed']:.2f} rounds/s with the console closed "
               f"(daemon {s['daemon_cores_closed']:.2f} cores)")
         for mode, where in (("browser", "open in a browser on this machine"),
-                            ("remote", "open on another machine (its requests only)")):
+                            ("remote", "open on another machine (its traffic only)")):
             m, fps = s[mode], s[mode]["console_fps_per_view"]
-            print(f"  {m['tracking_hz']:.2f} rounds/s {where} ({m['tracking_change_pct']:+.1f}"
-                  f" %; daemon {m['daemon_cores']:.2f} cores); "
+            lo, hi = m["tracking_change_pct_range"]
+            print(f"  {m['tracking_hz']:.2f} rounds/s {where}: {m['tracking_change_pct']:+.1f}"
+                  f" % (median against the closed windows either side; range {lo:+.1f} .. "
+                  f"{hi:+.1f} %; daemon {m['daemon_cores']:.2f} cores); "
                   f"{'-' if fps is None else f'{fps:.2f}'} frames/s per view shown "
                   f"(setting {s['fps_setting']})")
         print(f"  (the remote console's client itself used {s['remote']['client_cores']:.3f} "
@@ -724,11 +726,12 @@ def build_parser() -> argparse.ArgumentParser:
     bd.set_defaults(func=cmd_bench_busy_demo)
     co = bn.add_parser("console", help="the tracking rate with the web console open and "
                                        "closed, and the console's frame rate (headless "
-                                       "chromium; about 2 minutes)")
-    co.add_argument("--seconds", type=float, default=20.0, help="s per window (default 20)")
+                                       "chromium; about 8 minutes)")
+    co.add_argument("--seconds", type=float, default=15.0, help="s per window (default 15)")
     co.add_argument("--fps", type=int, default=10, choices=(1, 2, 5, 10),
                     help="the console's frames-per-second setting (default 10, its highest)")
-    co.add_argument("--rounds", type=int, default=2, help="(closed, open) window pairs")
+    co.add_argument("--rounds", type=int, default=6,
+                    help="(closed, browser, closed, remote) window rounds (default 6)")
     co.add_argument("--out", required=True, help="folder for console.json and the log")
     co.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     co.set_defaults(func=cmd_bench_console)

@@ -29,9 +29,7 @@ import asyncio
 import contextlib
 import functools
 import importlib.resources
-import json
 import logging
-import math
 import re
 import socket
 from collections.abc import Callable, Iterator, Mapping
@@ -48,7 +46,6 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
-from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from oralnav import __version__
 from oralnav.config.daemon import ApiSection
@@ -89,6 +86,7 @@ from oralnav.daemon.schemas import (
     ValidationProblem,
     jsonable,
 )
+from oralnav.daemon.telemetry_stream import stream as _stream
 from oralnav.safety.errors import StateError
 
 log = logging.getLogger(__name__)
@@ -648,95 +646,6 @@ async def _deny(ws: WebSocket, status: int, detail: str,
         await ws.send_denial_response(JSONResponse({"detail": detail}, status, headers=headers))
     else:  # pragma: no cover - uvicorn and the test client both support denial responses
         await ws.close(code=1008, reason=detail[:120])
-
-
-#: what a telemetry client may subscribe to besides the snapshot: ``status`` (the whole
-#: GET /status document, at most every STATUS_PERIOD_S and at once on a safety state
-#: change), ``poses`` (GET /poses, with every snapshot) and ``views`` (GET /views's
-#: cameras, with the snapshot that follows a new frame: a console learns of each frame
-#: without polling)
-TOPICS = frozenset({"status", "poses", "views"})
-#: s, the least time between two ``status`` documents on one connection
-STATUS_PERIOD_S = 0.2
-#: bytes: a longer client message is refused (a subscription is a few dozen bytes)
-MAX_CLIENT_MESSAGE = 4096
-
-
-def _subscription(text: str | None) -> tuple[set[str] | None, str | None]:
-    """A client message ``{"subscribe": [topic, ...]}`` as (topics, None), or (None, why
-    it is refused)."""
-    if text is None or len(text) > MAX_CLIENT_MESSAGE:
-        return None, f"send text of at most {MAX_CLIENT_MESSAGE} bytes"
-    try:
-        doc = json.loads(text)
-    except ValueError:
-        return None, "not JSON; send {\"subscribe\": [\"status\", \"poses\"]}"
-    topics = doc.get("subscribe") if isinstance(doc, dict) else None
-    if not isinstance(topics, list) or not all(isinstance(t, str) for t in topics):
-        return None, "expected {\"subscribe\": [topic, ...]}"
-    unknown = sorted(set(topics) - TOPICS)
-    if unknown:
-        return None, f"unknown topic(s) {', '.join(unknown)} (known: {', '.join(sorted(TOPICS))})"
-    return set(topics), None
-
-
-async def _stream(ws: WebSocket, ops: Operations, period: float,
-                  views: LiveViews | None = None) -> None:
-    """Send ``ops.telemetry()`` every ``period`` seconds until the client disconnects,
-    with what it subscribed to (:data:`TOPICS`; a refused message is answered
-    ``{"error": ...}`` and changes nothing)."""
-    topics: set[str] = set()
-    sent_frames: dict[str, int] = {}  # views: the counters this client was last sent
-    async with anyio.create_task_group() as tg:
-        async def watch() -> None:
-            # reading is also how a disconnect is seen at once
-            while True:
-                msg = await ws.receive()
-                if msg["type"] == "websocket.disconnect":
-                    break
-                wanted, why = _subscription(msg.get("text"))
-                if wanted is None:
-                    await ws.send_text(json.dumps({"error": why}))
-                else:
-                    topics.clear()
-                    topics.update(wanted)
-            tg.cancel_scope.cancel()
-
-        tg.start_soon(watch)
-        deadline = anyio.current_time()
-        last_status, last_state = -math.inf, None
-        try:
-            while True:
-                try:
-                    doc = ops.telemetry()
-                    now = anyio.current_time()
-                    if "status" in topics and (now - last_status >= STATUS_PERIOD_S
-                                               or doc.get("state") != last_state):
-                        doc = {**doc, "status": ops.status()}
-                        last_status, last_state = now, doc.get("state")
-                    if "poses" in topics:
-                        doc = {**doc, "poses": ops.poses()}
-                    if "views" in topics and views is not None:
-                        frames = views.counters()
-                        if frames != sent_frames:
-                            doc = {**doc, "views": views.cameras()}
-                            sent_frames = frames
-                    text = json.dumps(jsonable(doc), allow_nan=False)
-                except Exception as exc:
-                    log.exception("telemetry snapshot failed")
-                    await ws.close(code=1011, reason=f"telemetry failed: {type(exc).__name__}")
-                    break
-                await ws.send_text(text)
-                # fixed rate without drift; after a stall, skip rather than burst
-                deadline = max(deadline + period, anyio.current_time())
-                await anyio.sleep_until(deadline)
-        except WebSocketDisconnect:
-            pass
-        tg.cancel_scope.cancel()
-    if ws.application_state == WebSocketState.CONNECTED and \
-            ws.client_state == WebSocketState.CONNECTED:
-        with contextlib.suppress(Exception):
-            await ws.close()
 
 
 # -- serving -------------------------------------------------------------------------------

@@ -4,26 +4,37 @@ marker fields tracked in it, as downscaled JPEG and overlay geometry.
 :meth:`LiveViews.tap` is a tap of the capture pipeline (``daemon/capture_task.py``): it
 only keeps a reference to each round's frames and estimates (a dict update on the event
 loop), so a console never costs tracking anything on the tracking path. The work happens
-when a console asks (``GET /views/{camera}/image``): one frame is downscaled and encoded
-in a worker thread, at most :attr:`LiveViews.max_hz` times a second per camera whatever
-the number of consoles or their polling rate (a request in between gets the previous
-JPEG again), and one encode at a time, so the views' share of the CPU is bounded
-(docs/console.md gives the measured cost).
+when a console asks (a telemetry client subscribed to ``frames``, or
+``GET /views/{camera}/image``): one frame is downscaled and encoded in a worker thread, at
+most :attr:`LiveViews.max_hz` times a second per camera whatever the number of consoles or
+their rate (a request in between gets the previous JPEG again), and one encode at a time,
+so the views' share of the CPU is bounded (docs/console.md gives the measured cost).
 
 Overlays are in the frame's own pixels (x right, y down, the top-left pixel's centre at
 (0, 0)): for each field found in that camera, the convex hull of its inlier corners and
 its origin's axes (``AXIS_M`` long, projected from the estimated pose through the rig's
 camera model). The browser scales them to the size it shows.
+
+A frame pushed over the telemetry websocket is one binary message
+(:meth:`LiveViews.frame_message`): a 4-byte big-endian header length ``n``, ``n`` bytes
+of UTF-8 JSON (``camera``, ``counter``, ``stamp`` (s, capture instant), ``width`` and
+``height`` (px of the full frame: the overlay's pixels) and ``fields`` (the overlay)),
+then the JPEG. The header travels with its own image, so an overlay is always drawn on
+the frame it was found in.
 """
 
 from __future__ import annotations
 
+import json
+import struct
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
+import anyio
 import cv2
 import numpy as np
 
@@ -55,15 +66,42 @@ class _Latest:
     # (field name, estimate, the camera's model) for each field found in this camera
     found: tuple[tuple[str, Any, Any], ...]
 
+    @cached_property
+    def fields(self) -> list[dict[str, Any]]:
+        """The overlay (:meth:`LiveViews.overlay`), worked out once per frame whatever the
+        number of consoles."""
+        return _overlay(self.found)
+
 
 @dataclass
 class _Encoded:
-    counter: int
+    camera: str
+    latest: _Latest                 # the frame it was made of
     width: int
     quality: int
     at: float                       # s, monotonic: when it was encoded
     jpeg: bytes
-    stamp: float                    # the frame's capture instant (s)
+    _message: bytes | None = None
+
+    @property
+    def counter(self) -> int:
+        return int(self.latest.frame.counter)
+
+    @property
+    def stamp(self) -> float:
+        """The frame's capture instant (s)."""
+        return float(self.latest.frame.timestamp)
+
+    @property
+    def message(self) -> bytes:
+        """This JPEG as a telemetry frame message (module docstring), made once."""
+        if self._message is None:
+            h, w = self.latest.frame.image.shape[:2]
+            head = json.dumps({"camera": self.camera, "counter": self.counter,
+                               "stamp": self.stamp, "width": int(w), "height": int(h),
+                               "fields": self.latest.fields}).encode()
+            self._message = struct.pack(">I", len(head)) + head + self.jpeg
+        return self._message
 
 
 class LiveViews:
@@ -82,6 +120,9 @@ class LiveViews:
         self._encode_lock = threading.Lock()  # one encode at a time, across consoles
         #: JPEGs encoded so far (the rate bound is checked on it)
         self.encodes = 0
+        #: rounds tapped so far (:meth:`wait_newer` waits for it to move)
+        self.generation = 0
+        self._new: anyio.Event | None = None  # set by the next tap
 
     # -- the pipeline's side (event loop, must not block) -----------------------------------
     def tap(self, rnd: Any) -> None:
@@ -96,6 +137,19 @@ class LiveViews:
                         found.setdefault(cam, []).append((fname, est, rig[cam]))
         for cam, frame in rnd.frames.items():
             self._latest[cam] = _Latest(frame, rnd.source, now, tuple(found.get(cam, ())))
+        self.generation += 1
+        new, self._new = self._new, None
+        if new is not None:
+            new.set()
+
+    async def wait_newer(self, seen: int) -> int:
+        """Wait until a round after generation ``seen`` was tapped; returns the newest
+        generation (at once if it has already moved). On the event loop."""
+        while self.generation == seen:
+            if self._new is None:
+                self._new = anyio.Event()
+            await self._new.wait()
+        return self.generation
 
     # -- the console's side ---------------------------------------------------------------
     def cameras(self) -> list[dict[str, Any]]:
@@ -110,7 +164,7 @@ class LiveViews:
             out.append({"name": cam, "source": latest.source, "width": int(w),
                         "height": int(h), "counter": int(latest.frame.counter),
                         "stamp": float(latest.frame.timestamp),
-                        "age_s": now - latest.arrived, "fields": self._overlay(latest)})
+                        "age_s": now - latest.arrived, "fields": latest.fields})
         return out
 
     def counters(self) -> dict[str, int]:
@@ -120,7 +174,7 @@ class LiveViews:
     def overlay(self, camera: str) -> list[dict[str, Any]]:
         """The fields found in ``camera``'s newest frame: ``name``, ``corners`` (inliers
         in this camera), ``hull`` (px polygon) and ``axes`` (px: origin, x, y, z tips)."""
-        return self._overlay(self._get(camera))
+        return self._get(camera).fields
 
     def jpeg(self, camera: str, width: int = 640, quality: int = 70
              ) -> tuple[bytes, int, float]:
@@ -132,6 +186,18 @@ class LiveViews:
         newest JPEG already made of it is returned instead (perhaps of another size: the
         browser scales it), so consoles of several sizes cannot multiply the encodes.
         Raises :class:`NoFrame` and ``ValueError`` (width or quality out of bounds)."""
+        enc = self._encoded(camera, width, quality)
+        return enc.jpeg, enc.counter, enc.stamp
+
+    def frame_message(self, camera: str, width: int = 640, quality: int = 70
+                      ) -> tuple[bytes, int]:
+        """:meth:`jpeg` as one binary telemetry message (module docstring) with its
+        header, and the counter of the frame it holds (an earlier one than the newest
+        within ``1 / max_hz`` s of the last encode). Blocking: in a worker thread."""
+        enc = self._encoded(camera, width, quality)
+        return enc.message, enc.counter
+
+    def _encoded(self, camera: str, width: int, quality: int) -> _Encoded:
         if not MIN_WIDTH <= width <= MAX_WIDTH:
             raise ValueError(f"width must be {MIN_WIDTH}..{MAX_WIDTH} px, got {width}")
         if not MIN_QUALITY <= quality <= MAX_QUALITY:
@@ -142,19 +208,18 @@ class LiveViews:
             latest = self._get(camera)
             made = self._cache.setdefault(camera, {})
             same = made.get((width, quality))
-            if same is not None and same.counter == latest.frame.counter:
-                return same.jpeg, same.counter, same.stamp
+            if same is not None and same.latest is latest:
+                return same
             newest = max(made.values(), key=lambda e: e.at, default=None)
             if newest is not None and now - newest.at < 1.0 / self.max_hz:
-                return newest.jpeg, newest.counter, newest.stamp
+                return newest
             data = _encode(latest.frame.image, width, quality)
             self.encodes += 1
-            enc = _Encoded(int(latest.frame.counter), width, quality, time.monotonic(), data,
-                           float(latest.frame.timestamp))
+            enc = _Encoded(camera, latest, width, quality, time.monotonic(), data)
             made[(width, quality)] = enc
             if len(made) > MAX_SIZES:  # the sizes no console asked for lately go
                 del made[min(made, key=lambda k: made[k].at)]
-            return enc.jpeg, enc.counter, enc.stamp
+            return enc
 
     # -- internals ------------------------------------------------------------------------
     def _get(self, camera: str) -> _Latest:
@@ -164,20 +229,20 @@ class LiveViews:
             raise NoFrame(f"no frame from camera {camera!r} (cameras with frames: {known})")
         return latest
 
-    @staticmethod
-    def _overlay(latest: _Latest) -> list[dict[str, Any]]:
-        out = []
-        for fname, est, model in latest.found:
-            _rows, px = est.per_camera[model.name]
-            px = np.asarray(px, dtype=np.float32).reshape(-1, 2)
-            hull = cv2.convexHull(px).reshape(-1, 2) if len(px) >= 3 else px
-            T_cam_field = invert(np.asarray(model.T_ref_cam)) @ np.asarray(est.T_ref_field)
-            tips = model.project_from(T_cam_field, np.vstack([np.zeros(3),
-                                                              AXIS_M * np.eye(3)]))
-            axes = None if not np.all(np.isfinite(tips)) else np.round(tips, 1).tolist()
-            out.append({"name": fname, "corners": len(px),
-                        "hull": np.round(hull.astype(float), 1).tolist(), "axes": axes})
-        return out
+
+def _overlay(found: tuple[tuple[str, Any, Any], ...]) -> list[dict[str, Any]]:
+    """The overlay of the fields ``found`` in one frame (``_Latest.found``)."""
+    out = []
+    for fname, est, model in found:
+        _rows, px = est.per_camera[model.name]
+        px = np.asarray(px, dtype=np.float32).reshape(-1, 2)
+        hull = cv2.convexHull(px).reshape(-1, 2) if len(px) >= 3 else px
+        T_cam_field = invert(np.asarray(model.T_ref_cam)) @ np.asarray(est.T_ref_field)
+        tips = model.project_from(T_cam_field, np.vstack([np.zeros(3), AXIS_M * np.eye(3)]))
+        axes = None if not np.all(np.isfinite(tips)) else np.round(tips, 1).tolist()
+        out.append({"name": fname, "corners": len(px),
+                    "hull": np.round(hull.astype(float), 1).tolist(), "axes": axes})
+    return out
 
 
 def _encode(image: np.ndarray, width: int, quality: int) -> bytes:

@@ -16,7 +16,8 @@ const S = {
   status: null,                       // the newest /status document (telemetry)
   targets: [], tre: {},
   fps: 5, overlay: true,
-  views: new Map(),                   // camera -> {card, canvas, label, counter, meta, ...}
+  views: new Map(),                   // camera -> {card, canvas, label, counter, ...}
+  frameWidth: 0,                      // px the frames are subscribed at (0: none yet)
   shown: 0, shownSince: performance.now(),
 };
 
@@ -96,7 +97,6 @@ function signOut(why) {
   S.who = null;
   if (S.ws) { S.ws.onclose = null; S.ws.close(); S.ws = null; }
   for (const v of S.views.values()) {
-    clearTimeout(v.timer);
     if (v.bitmap) v.bitmap.close();
   }
   S.views.clear();
@@ -114,18 +114,19 @@ function connect() {
   const scheme = location.protocol === "https:" ? "wss" : "ws";
   const ws = new WebSocket(`${scheme}://${location.host}/telemetry?token=` +
                            encodeURIComponent(S.token));
+  ws.binaryType = "arraybuffer";       // the frames (binary messages): see onFrame
   S.ws = ws;
   ws.onopen = () => {
     S.wsTries = 0;
     setLink(true);
-    ws.send(JSON.stringify({ subscribe: ["status", "views"] }));
+    subscribe();
   };
   ws.onmessage = (ev) => {
+    if (ev.data instanceof ArrayBuffer) { onFrame(ev.data); return; }
     let doc;
     try { doc = JSON.parse(ev.data); } catch (_) { return; }
     if (doc.status) showStatus(doc.status);
     else if (doc.state) showState(doc.state, null);
-    if (doc.views) onViews(doc.views);
   };
   ws.onclose = () => {
     setLink(false);
@@ -262,39 +263,42 @@ async function registerTargets(targets, label) {
 }
 
 // -- live views -------------------------------------------------------------------------------
-// The telemetry says when a camera has a new frame (topic "views": its counter and the
-// fields found in it); a view then fetches that frame's JPEG, at most S.fps times a second
-// and one request at a time, so an idle cell or a paused console costs the daemon nothing.
-function onViews(cameras) {
-  for (const meta of cameras) {
-    const v = viewCard(meta.name);
-    v.meta = meta;
-    pull(v);
+// The frames come pushed over the telemetry websocket (topic "frames"): each camera's newest
+// frame, at most S.fps a second, as one binary message (a 4-byte big-endian header length,
+// the JSON header: camera, counter, size and the fields found in that very frame; then the
+// JPEG). No request per frame; a paused console or a hidden tab is unsubscribed, so it costs
+// the daemon nothing. The width asked is the widest view's in device pixels, in steps of 64
+// (a few sizes: the daemon encodes each frame once per size for every console).
+function subscribe() {
+  if (!S.ws || S.ws.readyState !== WebSocket.OPEN) return;
+  const topics = ["status"];
+  const msg = { subscribe: topics };
+  if (S.fps && !document.hidden) {
+    S.frameWidth = frameWidth();
+    topics.push("frames");
+    msg.frames = { fps: S.fps, width: S.frameWidth };
   }
-  const secs = (performance.now() - S.shownSince) / 1000;
-  if (secs >= 2) {
-    $("viewrate").textContent = `${(S.shown / secs).toFixed(1)} images/s shown`;
-    S.shown = 0;
-    S.shownSince = performance.now();
-  }
+  S.ws.send(JSON.stringify(msg));
 }
 
-function pull(v) {
-  if (!S.fps || v.busy || !v.meta || v.meta.counter === v.counter || document.hidden) return;
-  const wait = v.last + 1000 / S.fps - performance.now();
-  if (wait > 0) {  // too soon for the rate the operator set: once, when it is time
-    if (!v.timer) v.timer = setTimeout(() => { v.timer = null; pull(v); }, wait);
-    return;
-  }
-  showView(v);
-}
-
-function viewWidth(v) {
-  // the width the view is shown at, in device pixels, in steps of 64 (a few sizes, so the
-  // daemon's cache of the last JPEG serves every console of one size): no pixel decoded
-  // that the screen does not show
-  const px = (v.card.clientWidth || 640) * (window.devicePixelRatio || 1);
+function frameWidth() {
+  let px = 0;
+  for (const v of S.views.values()) px = Math.max(px, v.card.clientWidth);
+  px = (px || 640) * (window.devicePixelRatio || 1);
   return Math.min(VIEW_WIDTH[1], Math.max(VIEW_WIDTH[0], Math.ceil(px / 64) * 64));
+}
+
+function onFrame(buf) {
+  if (buf.byteLength < 4) return;
+  const n = new DataView(buf).getUint32(0);
+  let head;
+  try {
+    head = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, 4, n)));
+  } catch (_) { return; }
+  const v = viewCard(head.camera);
+  const frame = { head, jpeg: new Blob([new Uint8Array(buf, 4 + n)], { type: "image/jpeg" }) };
+  if (v.busy) { v.pending = frame; return; }  // one decode at a time; the newest waits
+  showFrame(v, frame);
 }
 
 function viewCard(name) {
@@ -311,39 +315,44 @@ function viewCard(name) {
   label.className = "label";
   card.append(canvas, label);
   $("views").append(card);
-  v = { card, canvas, label, counter: -1, meta: null, shownMeta: null, bitmap: null,
-        busy: false, last: -Infinity, timer: null };
+  v = { card, canvas, label, counter: -1, shownMeta: null, bitmap: null, busy: false,
+        pending: null };
   S.views.set(name, v);
+  // a new card changes the layout: frames at the width the views now have
+  requestAnimationFrame(() => { if (S.fps && frameWidth() !== S.frameWidth) subscribe(); });
   return v;
 }
 
-async function showView(v) {
-  const meta = v.meta;
+async function showFrame(v, { head, jpeg }) {
   v.busy = true;
-  v.last = performance.now();
   try {
-    const r = await fetch(`/views/${encodeURIComponent(meta.name)}/image?width=${viewWidth(v)}`,
-                          { headers: { Authorization: `Bearer ${S.token}` } }).catch(() => null);
-    if (!r || !r.ok) return;
-    const counter = Number(r.headers.get("X-Frame-Counter"));
-    const bitmap = await createImageBitmap(await r.blob()).catch(() => null);
+    const bitmap = await createImageBitmap(jpeg).catch(() => null);  // off the page's thread
     if (!bitmap) return;
     if (v.bitmap) v.bitmap.close();
     v.bitmap = bitmap;
-    v.counter = counter;
-    // the overlay of the frame shown (the newest meta may already be a frame further)
-    v.shownMeta = meta.counter === counter ? meta : v.meta;
+    v.counter = head.counter;
+    v.shownMeta = head;  // the overlay found in this very frame
     drawView(v);
-    v.card.dataset.counter = String(counter);
+    v.card.dataset.counter = String(head.counter);
     S.shown += 1;
-    const fields = meta.fields.map((f) => `${f.name} (${f.corners})`).join(", ");
-    v.label.replaceChildren(text("b", meta.name), text("span", `#${counter}`),
-                            text("span", `${meta.width}x${meta.height}`),
+    const fields = head.fields.map((f) => `${f.name} (${f.corners})`).join(", ");
+    v.label.replaceChildren(text("b", head.camera), text("span", `#${head.counter}`),
+                            text("span", `${head.width}x${head.height}`),
                             text("span", fields || "no field", "fields"));
   } finally {
     v.busy = false;
   }
-  pull(v);  // a frame that came while this one loaded
+  const secs = (performance.now() - S.shownSince) / 1000;
+  if (secs >= 2) {
+    $("viewrate").textContent = `${(S.shown / secs).toFixed(1)} images/s shown`;
+    S.shown = 0;
+    S.shownSince = performance.now();
+  }
+  if (v.pending) {  // a frame that came while this one decoded
+    const next = v.pending;
+    v.pending = null;
+    showFrame(v, next);
+  }
 }
 
 function text(tag, content, cls) {
@@ -436,16 +445,18 @@ function wire() {
   });
   $("fps").addEventListener("change", (ev) => {
     S.fps = Number(ev.target.value);
-    for (const v of S.views.values()) pull(v);
+    subscribe();
   });
   $("overlay").addEventListener("change", (ev) => {
     S.overlay = ev.target.checked;
     for (const v of S.views.values()) drawView(v);
   });
-  window.addEventListener("resize", () => { for (const v of S.views.values()) drawView(v); });
-  document.addEventListener("visibilitychange", () => {
-    for (const v of S.views.values()) pull(v);  // a tab shown again catches up at once
+  window.addEventListener("resize", () => {
+    for (const v of S.views.values()) drawView(v);
+    if (S.fps && frameWidth() !== S.frameWidth) subscribe();  // frames at the new width
   });
+  // a hidden tab shows nothing: no frames sent to it; shown again, they flow at once
+  document.addEventListener("visibilitychange", subscribe);
   setInterval(() => { if (S.token) refreshTargets(); }, 3000);
   if (S.token) signIn(S.token);
 }

@@ -2,13 +2,16 @@
 core of ``test_api.py``: the page and its files without a token (nothing secret in them)
 under a strict content policy; ``/session``, ``/views``, a view's JPEG, the planned
 targets and the target selection with the usual roles, refusals and audit; and the
-telemetry websocket's subscription to the status and the poses."""
+telemetry websocket's subscriptions to the status, the poses and the frames."""
 
 from __future__ import annotations
 
 import json
+import struct
 
+import cv2
 import httpx
+import numpy as np
 import pytest
 import websockets
 
@@ -169,3 +172,44 @@ async def test_telemetry_says_when_a_view_has_a_new_frame(views_rig):
                     if len(counters) == 1:  # a new frame after the first announcement
                         views_rig.views.tap(_round(8, _camera_rig(), _pose()))
             assert counters == [[7, 7], [8, 8]], counters
+
+
+def _frame(msg: bytes) -> tuple[dict, bytes]:
+    (n,) = struct.unpack(">I", msg[:4])
+    return json.loads(msg[4:4 + n]), msg[4 + n:]
+
+
+async def test_telemetry_pushes_each_new_frame_as_a_binary_message(views_rig):
+    """Item 1 "live views ... over the existing websocket ... never slowing tracking": a
+    client subscribed to ``frames`` gets each camera's newest frame once, as a binary
+    message (header with the overlay, then the JPEG at the width asked), no request per
+    frame; a new round brings the next frames; bad frame options are refused by name."""
+    views_rig.views.max_hz = 60.0
+    async with running(views_rig.app) as port:
+        url = f"ws://127.0.0.1:{port}/telemetry?token={views_rig.tokens['observer']}"
+        async with websockets.connect(url) as ws:
+            await ws.send(json.dumps({"subscribe": ["frames"], "frames": {"fps": 0}}))
+            await ws.send(json.dumps({"subscribe": ["status"], "frames": {"fps": 5}}))
+            await ws.send(json.dumps({"subscribe": ["frames"], "frames": {"size": 5}}))
+            await ws.send(json.dumps({"subscribe": ["frames"],
+                                      "frames": {"fps": 30, "width": 320}}))
+            errors, frames = [], []
+            for _ in range(200):
+                msg = await ws.recv()
+                if isinstance(msg, str):
+                    doc = json.loads(msg)
+                    errors.extend([doc["error"]] if "error" in doc else [])
+                    continue
+                head, jpeg = _frame(msg)
+                img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_UNCHANGED)
+                assert img.shape == (240, 320) and head["fields"][0]["name"] == "opener"
+                frames.append((head["camera"], head["counter"]))
+                if len(frames) == 2:
+                    views_rig.views.tap(_round(8, _camera_rig(), _pose()))
+                if len(frames) == 4:
+                    break
+            assert sorted(frames[:2]) == [("left", 7), ("right", 7)], frames
+            assert sorted(frames[2:]) == [("left", 8), ("right", 8)], frames
+            assert any("frames fps must be a number in [0.1, 30]" in e for e in errors)
+            assert any("need the frames topic" in e for e in errors)
+            assert any("expected \"frames\"" in e for e in errors), errors

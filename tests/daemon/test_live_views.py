@@ -5,9 +5,12 @@ tracked field where its estimated pose projects."""
 
 from __future__ import annotations
 
+import json
+import struct
 import time
 from types import SimpleNamespace
 
+import anyio
 import cv2
 import numpy as np
 import pytest
@@ -129,3 +132,40 @@ def test_unknown_camera_and_bad_sizes_are_clear_errors():
     with pytest.raises(ValueError, match="max_hz"):
         LiveViews(max_hz=0)
     assert [c["name"] for c in views.cameras()] == ["left", "right"]
+
+
+def test_a_frame_message_carries_its_own_overlay_and_jpeg():
+    """Item 1 "the tracked fields drawn over the views": a pushed frame is one binary
+    message, header then JPEG, and the header's overlay and counter are those of the frame
+    in that JPEG (not of a newer one tapped since), made once for every console."""
+    views, rig = LiveViews(max_hz=5.0), _rig()
+    views.tap(_round(3, rig, _pose()))
+    msg, counter = views.frame_message("right", width=320)
+    (n,) = struct.unpack(">I", msg[:4])
+    head = json.loads(msg[4:4 + n])
+    img = cv2.imdecode(np.frombuffer(msg[4 + n:], np.uint8), cv2.IMREAD_UNCHANGED)
+    assert counter == 3 and head["camera"] == "right" and head["counter"] == 3
+    assert (head["width"], head["height"]) == (640, 480) and img.shape == (240, 320)
+    assert head["stamp"] == 103.0 and head["fields"] == views.overlay("right")
+    views.tap(_round(4, rig, _pose(0.6)))  # within 1/max_hz: the frame 3 message again
+    again, counter = views.frame_message("right", width=320)
+    assert again is msg and counter == 3 and views.encodes == 1
+    assert views.overlay("right") != head["fields"]  # frame 4's overlay is elsewhere
+
+
+async def test_wait_newer_wakes_on_the_next_round():
+    """The frame push waits for rounds instead of polling: ``wait_newer`` returns at once
+    when a round came after the generation seen, else at the next tap."""
+    views, rig = LiveViews(), _rig()
+    assert await views.wait_newer(-1) == 0
+    woke = []
+
+    async def waiter() -> None:
+        woke.append(await views.wait_newer(0))
+
+    async with anyio.create_task_group() as tg:
+        tg.start_soon(waiter)
+        await anyio.sleep(0.05)
+        assert woke == []
+        views.tap(_round(1, rig, _pose()))
+    assert woke == [1]
