@@ -22,10 +22,11 @@ PY
     fi
     # The Aravis camera backend (PyGObject, built here from source) needs Debian packages;
     # without them oralnav installs without it and its tests are skipped, saying why.
-    # test and bench: the suite runs the benchmarks' quick modes and figure commands.
-    local extras="test,bench"
+    # test and bench: the suite runs the benchmarks' quick modes and figure commands;
+    # cluster: it runs a sweep on a Dask LocalCluster too.
+    local extras="test,bench,cluster"
     if aravis_system_packages; then
-        extras="test,bench,aravis"
+        extras="test,bench,cluster,aravis"
     fi
     # Reinstall only when pyproject.toml (or the extras installed) changes.
     local stamp="$VENV/.oralnav-$(sha1sum pyproject.toml | cut -c1-12)-${extras//,/-}"

@@ -38,7 +38,6 @@ import sys
 import time
 from collections import Counter
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -118,34 +117,37 @@ def classify(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def run(trials: int, seed: int, workers: int | None = None,
-        progress: bool = True) -> dict[str, Any]:
-    """The Monte Carlo over ``trials`` seeds from ``seed``; the summary document."""
+        progress: bool = True, scheduler: str | None = None) -> dict[str, Any]:
+    """The Monte Carlo over ``trials`` seeds from ``seed``; the summary document. The
+    trials run on the engine ``scheduler`` names (``bench/executor.py``: by default a
+    local process pool of ``workers``; a trial is a pure function of its seed)."""
+    from oralnav.bench.executor import TrialRunner
     from oralnav.control.needle.procedure import step_rates
 
     if trials < 1:
         raise ValueError(f"needle bench: trials must be >= 1, got {trials}")
-    workers = max(1, min(workers or os.cpu_count() or 1, trials))
+    if scheduler is None:
+        workers = max(1, min(workers or os.cpu_count() or 1, trials))
     seeds = list(range(seed, seed + trials))
     t0 = time.perf_counter()
-    records: list[dict[str, Any]] = []
-    if workers == 1:
-        it = map(run_trial, seeds)
-        pool = None
-    else:
-        pool = ProcessPoolExecutor(max_workers=workers)
-        it = pool.map(run_trial, seeds)
-    try:
-        for rec in it:
-            records.append(rec)
-            if progress:
-                ok = all(rec["steps"].values())
-                f = rec["failure"]
-                print(f"needle: trial {rec['seed']} ({len(records)}/{trials}) "
-                      f"{'ok' if ok else f['step'] + ' ' + f['cause']} "
-                      f"{rec['seconds']:.1f} s", file=sys.stderr, flush=True)
-    finally:
-        if pool is not None:
-            pool.shutdown()
+
+    def report(_i: int, rec: dict[str, Any], done: int, total: int) -> None:
+        if not progress:
+            return
+        ok = all(rec["steps"].values())
+        f = rec["failure"]
+        left = (time.perf_counter() - t0) / done * (total - done)
+        print(f"needle: trial {rec['seed']} ({done}/{total}) "
+              f"{'ok' if ok else f['step'] + ' ' + f['cause']} {rec['seconds']:.1f} s; "
+              f"about {left / 60:.1f} min left", file=sys.stderr, flush=True)
+
+    with TrialRunner(scheduler, workers) as runner:
+        if progress:
+            print(f"needle: {trials} trials on {runner.name}"
+                  + (f", dashboard {runner.dashboard}" if runner.dashboard else ""),
+                  file=sys.stderr, flush=True)
+        records = runner.map(run_trial, seeds, on_result=report)
+        engine, workers = runner.name, runner.workers
     rates = step_rates(records)
     causes = Counter(r["failure"]["cause"] for r in records if r["failure"])
     return {"bench": "needle", "trials": rates["trials"], "overall": rates["overall"],
@@ -154,7 +156,7 @@ def run(trials: int, seed: int, workers: int | None = None,
             "paper": PAPER, "target_overall": 0.90, "seed": seed,
             "seconds": round(time.perf_counter() - t0, 1),
             "trial_seconds_median": round(float(np.median([r["seconds"] for r in records])), 2),
-            "machine": {"cpus": os.cpu_count(), "workers": workers,
+            "machine": {"cpus": os.cpu_count(), "workers": workers, "engine": engine,
                         "python": platform.python_version()},
             "records": records}
 
@@ -165,11 +167,11 @@ def summary(doc: dict[str, Any]) -> dict[str, Any]:
 
 
 def main(out: Path, quick: bool = False, trials: int | None = None, seed: int = 0,
-         workers: int | None = None) -> dict[str, Any]:
+         workers: int | None = None, scheduler: str | None = None) -> dict[str, Any]:
     """Run the Monte Carlo (``quick``: 10 trials, else 200 unless ``trials`` is given) and
     write ``needle.json`` into ``out``."""
     n = trials if trials is not None else (10 if quick else 200)
-    doc = run(n, seed, workers)
+    doc = run(n, seed, workers, scheduler=scheduler)
     out.mkdir(parents=True, exist_ok=True)
     (out / "needle.json").write_text(json.dumps(doc, indent=1) + "\n")
     print(f"needle: {doc['trials']} trials, overall {100 * doc['overall']:.1f} % "

@@ -16,7 +16,8 @@
     oralnav plan place --scene FILE [--figures DIR] [--json]
     oralnav replay FILE.mcap [--json]
     oralnav bench navigation|control|calibration|planning [--quick] --out DIR
-    oralnav bench needle [--trials N] [--seed S] [--workers W] [--quick] [--tracking]
+    oralnav bench needle [--trials N] [--seed S] [--workers W] [--scheduler ADDRESS]
+                         [--quick] [--tracking]
                          --out DIR [--json]
     oralnav bench faults [--quick] --out DIR [--json]
     oralnav bench busy-demo --out DIR [--runs N] [--busy N] [--json]
@@ -249,8 +250,13 @@ def _named_paths(items: Sequence[str], option: str, what: str = "camera") -> dic
 
 def _calibration_rig(items: Sequence[str], images: dict[str, Any] | None,
                      sources: dict[str, Path] | None):
-    """A one-camera rig from ``--calibration NAME=FILE`` (scikit-surgery calibration.txt);
-    the camera is the reference frame, and its image size is that of its first image."""
+    """A one-camera rig from ``--calibration NAME=FILE``: a scikit-surgery calibration.txt,
+    or a one-camera OpenCV FileStorage, ROS camera_info or Kalibr camchain file (judged
+    from its content). The camera is the reference frame, named NAME; its image size is
+    that of its first image, and a file that holds a size must agree with it."""
+    from dataclasses import replace
+
+    from oralnav.config.camera_files import detect_format, load_camera_file, sniff_format
     from oralnav.config.rigid_bodies import load_calibration_txt
     from oralnav.control.vision.camera import Rig
     from oralnav.drivers.camera.replay import read_frame
@@ -273,7 +279,20 @@ def _calibration_rig(items: Sequence[str], images: dict[str, Any] | None,
             h, w = read_frame(given[name], 0).shape[:2]
         except DriverError as exc:
             raise UsageError(str(exc)) from exc
-    return Rig(name, {name: load_calibration_txt(path, (w, h), name=name)})
+    fmt = "folder" if path.is_dir() else sniff_format(path)
+    if fmt is None and path.suffix.lower() in (".yaml", ".yml", ".xml", ".json"):
+        detect_format(path)  # raises: none of the formats, with what was expected
+    if fmt is None:  # none of the ecosystem's formats: scikit-surgery's text
+        return Rig(name, {name: load_calibration_txt(path, (w, h), name=name)})
+    if fmt not in ("opencv", "ros", "kalibr"):
+        raise UsageError(f"--calibration {name}={path}: a {'rig TOML' if fmt == 'toml' else fmt}"
+                         " is not a one-camera calibration file; give it as --rig")
+    rig = load_camera_file(path, size=(w, h), fmt=fmt)
+    if len(rig.cameras) != 1:
+        raise UsageError(f"--calibration {name}={path}: the file holds {len(rig.cameras)} "
+                         "cameras; --calibration builds a one-camera rig (use --rig FILE)")
+    (cam,) = rig.cameras.values()
+    return Rig(name, {name: replace(cam, name=name)})
 
 
 def _tag_bodies(items: Sequence[str]) -> list:
@@ -418,8 +437,13 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
         raise UsageError(f"--trials must be at least 1, got {args.trials}")
     if args.workers is not None and args.workers < 1:
         raise UsageError(f"--workers must be at least 1, got {args.workers}")
-    doc = needle.main(Path(args.out), quick=args.quick, trials=args.trials, seed=args.seed,
-                      workers=args.workers)
+    from oralnav.bench.executor import SchedulerError
+
+    try:
+        doc = needle.main(Path(args.out), quick=args.quick, trials=args.trials,
+                          seed=args.seed, workers=args.workers, scheduler=args.scheduler)
+    except SchedulerError as exc:
+        raise UsageError(str(exc)) from None
     s = needle.summary(doc)
     _emit(args, s, f"{s['trials']} trials: overall {100 * s['overall']:.1f} %; "
                    + ", ".join(f"{k} {100 * v:.1f} %" for k, v in s["steps"].items())
@@ -679,6 +703,10 @@ def build_parser() -> argparse.ArgumentParser:
     nd.add_argument("--seed", type=int, default=0, help="first trial's seed (default 0)")
     nd.add_argument("--workers", type=int, default=None,
                     help="processes (default: one per CPU)")
+    nd.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                    help="run the trials on a Dask cluster: its scheduler's address "
+                         "(tcp://host:8786), or 'local' for a LocalCluster of --workers "
+                         "here (needs oralnav[cluster]; default: a local process pool)")
     nd.add_argument("--quick", action="store_true", help="fewer trials")
     nd.add_argument("--out", required=True, help="folder for needle.json (and charts)")
     nd.add_argument("--json", action="store_true",

@@ -1,6 +1,8 @@
 """The rig file: cameras, their intrinsics and their poses in the reference frame.
 
-See docs/formats.md. Lengths in metres, intrinsics in pixels.
+See docs/formats.md. Lengths in metres, intrinsics in pixels. Our TOML is the default;
+:func:`load_rig` also reads OpenCV, ROS and Kalibr camera files and :func:`save_rig_as`
+writes them (config/camera_files.py).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from pydantic import Field, field_validator
 from oralnav.control.geometry import as_transform
 from oralnav.control.vision.camera import DIST_LENGTHS, CameraModel, Rig
 
+from .camera_files import FORMATS, Names, Size, detect_format, load_camera_file, save_camera_file
 from .loader import Float, Int, Strict, atomic_write_text, build, dump_toml, read_toml, validate
 
 Matrix = list[list[Float]]
@@ -76,8 +79,20 @@ def rig_from_dict(data: dict, path: str | Path) -> Rig:
     return build(path, "reference", lambda: Rig(doc.reference, cams))
 
 
-def load_rig(path: str | Path) -> Rig:
-    """Read and validate a rig file; raises ``ConfigError`` naming file and key."""
+def load_rig(path: str | Path, *, names: Names = None, size: Size = None) -> Rig:
+    """Read and validate a rig file; raises ``ConfigError`` naming file and key.
+
+    A ``.toml`` file is our rig format; any other file (or a ROS pair's folder) is judged
+    from its content: our TOML, or an OpenCV, ROS or Kalibr camera file
+    (:func:`oralnav.config.camera_files.load_camera_file`, which ``names`` and ``size``
+    go to: the cameras' names in file order, and the image size where the file lacks it).
+    """
+    fmt = detect_format(path)
+    if fmt != "toml":
+        return load_camera_file(path, names=names, size=size, fmt=fmt)
+    if names is not None or size is not None:
+        raise ValueError(f"{path}: a rig TOML names and sizes its cameras itself; names and "
+                         "size are for OpenCV, ROS and Kalibr files")
     return rig_from_dict(read_toml(path), path)
 
 
@@ -115,3 +130,27 @@ def save_rig(rig: Rig, path: str | Path) -> None:
     # Re-read what we are about to write: a file we cannot load back is never written.
     rig_from_dict(build(path, "", lambda: tomllib.loads(text)), path)
     atomic_write_text(path, text)
+
+
+def save_rig_as(rig: Rig, path: str | Path, fmt: str = "toml") -> None:
+    """Write ``rig`` atomically as ``fmt``, one of :data:`FORMATS`:
+
+    - ``"toml"``: our rig file (:func:`save_rig`);
+    - ``"opencv"``: an OpenCV FileStorage file, YAML, XML or JSON by ``path``'s suffix
+      (``.yml``/``.yaml``, ``.xml``, ``.json``); one or two cameras;
+    - ``"ros"``: ROS camera_info YAML; one camera: ``path`` is the ``.yaml`` file; a stereo
+      pair: ``path`` is a folder (created if missing) that gets ``left.yaml`` (the
+      reference) and ``right.yaml``;
+    - ``"kalibr"``: a Kalibr camchain ``.yaml``, any number of cameras.
+
+    Every format but ours needs the rig's reference to be one of its cameras. Raises
+    ``ConfigError`` naming ``path`` when the format cannot hold the rig (the message says
+    what), ``ValueError`` on an unknown ``fmt``, ``OSError`` on I/O failure. Every file is
+    read back before it is written.
+    """
+    if fmt not in FORMATS:
+        raise ValueError(f"fmt must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    if fmt == "toml":
+        save_rig(rig, path)
+    else:
+        save_camera_file(rig, path, fmt)

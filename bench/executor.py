@@ -1,0 +1,159 @@
+"""Where a benchmark's independent trials run: in this process, a local process pool, or a
+Dask distributed cluster, behind one interface (issue 35, "sweeps on an existing
+distributed engine").
+
+A trial is a pure function of its item (a seed and its settings): the same item gives the
+same result whichever engine ran it, so a sweep's figures do not depend on where it ran.
+:class:`TrialRunner` picks the engine from ``scheduler``:
+
+- ``None``: the embedded default, no service to start: a ``ProcessPoolExecutor`` of
+  ``workers`` processes (default one per CPU), or this process alone for one worker;
+- ``"local"``: a Dask ``LocalCluster`` of ``workers`` single-threaded worker processes
+  started here (its dashboard shows the sweep while it runs);
+- an address (``tcp://host:8786`` or ``host:8786``): the Dask scheduler of a cluster
+  started with ``dask scheduler`` and ``dask worker ADDRESS`` on each host (docs in
+  bench/README.md, "Sweeps on a cluster").
+
+Dask is the optional extra ``oralnav[cluster]``; without it a scheduler other than the
+default is refused saying what to install. On a cluster a worker that dies mid-sweep
+loses no trial: the scheduler runs its trials again elsewhere, and each comes back once.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from typing import Any
+
+__all__ = ["SchedulerError", "TrialRunner"]
+
+#: (index of the item, its result, trials done so far, trials in all)
+OnResult = Callable[[int, Any, int, int], None]
+#: s to reach a cluster's scheduler before giving up
+CONNECT_TIMEOUT_S = 10.0
+
+
+class SchedulerError(RuntimeError):
+    """The engine asked for cannot be used (Dask missing, a scheduler unreachable); the
+    message says what to do."""
+
+
+def _dask() -> Any:
+    try:
+        import distributed
+    except ImportError:
+        raise SchedulerError("a Dask scheduler needs Dask distributed: pip install "
+                             "'oralnav[cluster]' (or run without --scheduler: a local "
+                             "process pool)") from None
+    return distributed
+
+
+class TrialRunner:
+    """Runs trials on the engine named by ``scheduler`` (module docstring) with
+    ``workers`` processes where it starts them (default one per CPU). A context manager:
+    leaving it stops what it started (never a cluster it only connected to)."""
+
+    def __init__(self, scheduler: str | None = None, workers: int | None = None, *,
+                 connect_timeout: float = CONNECT_TIMEOUT_S) -> None:
+        if workers is not None and workers < 1:
+            raise ValueError(f"workers must be at least 1, got {workers}")
+        self.scheduler = scheduler
+        self.workers = workers or os.cpu_count() or 1
+        self._pool: ProcessPoolExecutor | None = None
+        self._client: Any = None
+        self._cluster: Any = None
+        if scheduler is None:
+            if self.workers > 1:
+                self._pool = ProcessPoolExecutor(max_workers=self.workers)
+            return
+        distributed = _dask()
+        if scheduler == "local":
+            self._cluster = distributed.LocalCluster(
+                n_workers=self.workers, threads_per_worker=1, processes=True,
+                silence_logs=logging.WARNING)
+            self._client = distributed.Client(self._cluster)
+        else:
+            try:
+                self._client = distributed.Client(scheduler, timeout=connect_timeout)
+            except (OSError, TimeoutError) as exc:
+                raise SchedulerError(f"cannot reach the Dask scheduler at {scheduler!r} "
+                                     f"within {connect_timeout:g} s ({exc}); start one "
+                                     "with `dask scheduler` and workers with `dask worker "
+                                     "ADDRESS`") from None
+            self.workers = len(self._client.scheduler_info().get("workers", {}))
+
+    @property
+    def name(self) -> str:
+        """The engine in words, for a benchmark's record of how it ran."""
+        if self._client is not None:
+            where = "LocalCluster" if self._cluster is not None else self.scheduler
+            return f"dask {where} ({self.workers} workers)"
+        if self._pool is not None:
+            return f"process pool ({self.workers} workers)"
+        return "this process"
+
+    @property
+    def dashboard(self) -> str | None:
+        """The Dask dashboard's address, where there is one."""
+        return None if self._client is None else self._client.dashboard_link
+
+    def map(self, fn: Callable[[Any], Any], items: Sequence[Any],
+            on_result: OnResult | None = None) -> list[Any]:
+        """``[fn(item) for item in items]``, run on the engine; ``on_result`` is called
+        as each trial finishes (in the order they finish). ``fn`` must be importable
+        by the workers (a module-level function of an installed package). A trial that
+        raises stops the sweep with its error."""
+        items = list(items)
+        results: list[Any] = [None] * len(items)
+        done = 0
+
+        def finished(i: int, value: Any) -> None:
+            nonlocal done
+            results[i] = value
+            done += 1
+            if on_result is not None:
+                on_result(i, value, done, len(items))
+
+        if self._client is not None:
+            distributed = _dask()
+            # pure=False: each trial a task of its own, never a result reused from
+            # another sweep that happened to have an equal item
+            futures = self._client.map(fn, items, pure=False)
+            index = {f.key: i for i, f in enumerate(futures)}
+            try:
+                for fut in distributed.as_completed(futures):
+                    finished(index[fut.key], fut.result())
+            finally:
+                self._client.cancel(futures)
+        elif self._pool is not None:
+            futs = {self._pool.submit(fn, item): i for i, item in enumerate(items)}
+            try:
+                for fut in as_completed(futs):
+                    finished(futs[fut], fut.result())
+            finally:
+                for fut in futs:
+                    fut.cancel()
+        else:
+            for i, item in enumerate(items):
+                finished(i, fn(item))
+        return results
+
+    def close(self) -> None:
+        """Stop the pool or the cluster started here; disconnect from a remote one."""
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+            self._pool = None
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+        if self._cluster is not None:
+            self._cluster.close()
+            self._cluster = None
+
+    def __enter__(self) -> TrialRunner:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,29 @@
+"""Trials for the executor tests: module-level, so Dask's worker processes import them."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+
+def fit_trial(seed: int) -> tuple[int, float, float]:
+    """A small Monte Carlo trial, a pure function of its seed: a line fitted to 200 noisy
+    points; (seed, slope, intercept)."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-1, 1, 200)
+    y = 0.7 * x + 0.1 + rng.normal(0, 0.05, 200)
+    slope, intercept = np.polyfit(x, y, 1)
+    return seed, float(slope), float(intercept)
+
+
+def dying_trial(item: tuple[int, str]) -> tuple[int, float, float]:
+    """``fit_trial``, except that trial 3 kills its worker process the first time it runs
+    (a marker file in the folder given says it did)."""
+    seed, folder = item
+    marker = Path(folder) / "died"
+    if seed == 3 and not marker.exists():
+        marker.write_text(str(os.getpid()))
+        os._exit(1)
+    return fit_trial(seed)

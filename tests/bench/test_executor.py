@@ -1,0 +1,87 @@
+"""Issue 35, item 2 and "Done when" 5: the benchmarks' trials run through one executor
+interface; a Dask LocalCluster gives the same results trial by trial as the process pool
+and this process, a worker killed mid-sweep loses no trial and counts none twice, and an
+engine that cannot be used is refused saying what to do."""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+
+import pytest
+
+from oralnav.bench.executor import SchedulerError, TrialRunner
+
+from .sweep_trials import dying_trial, fit_trial
+
+distributed = pytest.importorskip("distributed", reason="Dask is the extra oralnav[cluster]")
+
+SEEDS = list(range(100, 112))
+#: threads Dask keeps for the whole process once used (its offload pool, its event loop
+#: thread, the watchers of the worker processes it starts, which go with the cluster)
+DASK_THREADS = ("Dask-", "IO loop", "AsyncProcess Dask", "QueueFeederThread")
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_threads():
+    """The suite's check (tests/conftest.py), but for Dask's own long-lived threads."""
+    before = set(threading.enumerate())
+    yield
+    deadline = time.monotonic() + 1.0
+    while True:
+        leaked = [t.name for t in threading.enumerate() if t not in before and t.is_alive()
+                  and not t.name.startswith(DASK_THREADS)]
+        if not leaked or time.monotonic() > deadline:
+            break
+        time.sleep(0.01)
+    assert not leaked, f"test left threads running: {leaked}"
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """One two-worker LocalCluster for the module's tests (starting one takes seconds)."""
+    with TrialRunner("local", workers=2) as runner:
+        yield runner
+
+
+def test_every_engine_gives_the_same_trials(cluster):
+    """The same sweep in this process, on a process pool and on a two-worker
+    LocalCluster: identical results, trial by trial, in the items' order; each trial is
+    reported once as it finishes."""
+    with TrialRunner(workers=1) as here:
+        want = here.map(fit_trial, SEEDS)
+        assert here.name == "this process"
+    with TrialRunner(workers=2) as pool:
+        assert pool.map(fit_trial, SEEDS) == want
+        assert pool.name == "process pool (2 workers)"
+    seen = []
+    got = cluster.map(fit_trial, SEEDS, on_result=lambda i, r, done, n: seen.append((i, done, n)))
+    assert got == want and [r[0] for r in got] == SEEDS
+    assert sorted(i for i, _, _ in seen) == list(range(len(SEEDS)))
+    assert [d for _, d, _ in seen] == list(range(1, len(SEEDS) + 1))
+    assert cluster.name == "dask LocalCluster (2 workers)" and cluster.dashboard
+
+
+def test_a_worker_killed_mid_sweep_loses_no_trial(cluster, tmp_path):
+    """Trial 3 kills its worker process: the scheduler runs it again on a worker that
+    lives, and every trial comes back exactly once with the result it would have had."""
+    seen = []
+    got = cluster.map(dying_trial, [(s, str(tmp_path)) for s in range(8)],
+                      on_result=lambda i, r, done, n: seen.append(i))
+    assert (tmp_path / "died").exists()  # the worker did die
+    assert got == [fit_trial(s) for s in range(8)]
+    assert sorted(seen) == list(range(8))
+
+
+def test_an_engine_that_cannot_be_used_is_refused_clearly(monkeypatch):
+    """No Dask installed: what to install; no scheduler at the address: which address,
+    and how to start one; a bad worker count: the bound."""
+    monkeypatch.setitem(sys.modules, "distributed", None)  # as if not installed
+    with pytest.raises(SchedulerError, match=r"oralnav\[cluster\]"):
+        TrialRunner("local")
+    monkeypatch.undo()
+    with pytest.raises(SchedulerError, match=r"tcp://127.0.0.1:9.*dask scheduler"):
+        TrialRunner("tcp://127.0.0.1:9", connect_timeout=1.0)
+    with pytest.raises(ValueError, match="at least 1"):
+        TrialRunner(workers=0)
