@@ -2,7 +2,7 @@
 
 See docs/formats.md. Lengths in metres, intrinsics in pixels. Our TOML is the default;
 :func:`load_rig` also reads OpenCV, ROS and Kalibr camera files and :func:`save_rig_as`
-writes them (config/camera_files.py).
+writes them (config/camera_files/).
 """
 
 from __future__ import annotations
