@@ -13,7 +13,10 @@
                                       --endoscope-opener FILE --effector-zero FILE
     (each also [--unit m|mm] [--out FILE --cell ID] [--json])
     oralnav calibrate camera --images DIR --fields F [--board NAME] [--model M] [--rig-out R]
+                             [--rig-format toml|opencv|ros|kalibr] [--min-views N] [--reject RULE]
     oralnav calibrate stereo --left DIR --right DIR --fields F [--board NAME] [--rig-out R]
+                             [--rig-format toml|opencv|ros|kalibr] [--min-views N] [--reject RULE]
+    (both also [--min-views N] [--reject RULE]; the board: any target of the fields file)
     oralnav calibrate capture-views --rig RIG --out DIR [--views N]     (simulated images)
     oralnav calibrate capture --out DIR [--samples N] [--corner-noise PX]   (simulated cell)
     oralnav calibrate chain --samples DIR --out DIR --cell ID
@@ -298,9 +301,10 @@ def cmd_effector_marker(args: argparse.Namespace) -> int:
 
 # -- camera intrinsics and stereo from images -----------------------------------------
 def _board(args: argparse.Namespace):
-    from oralnav.config.fields import load_fields
+    """The calibration target ``--board`` of ``--fields`` (any family)."""
+    from oralnav.config.fields import load_targets
 
-    fields = load_fields(args.fields)
+    fields = load_targets(args.fields)
     if args.board not in fields:
         raise SampleFileError(f"{args.fields}: no field {args.board!r}; it has {sorted(fields)}")
     return fields[args.board]
@@ -321,7 +325,7 @@ def _detect(files: list[Path], board, what: str) -> tuple[list, tuple[int, int],
     """Detect ``board`` in every image: (views, (width, height), the images' digest)."""
     import cv2
 
-    from oralnav.control.vision.detection import detect_fields
+    from oralnav.control.calibration.targets import detect_target
 
     views, size, raws = [], None, []
     for k, f in enumerate(files):
@@ -334,7 +338,7 @@ def _detect(files: list[Path], board, what: str) -> tuple[list, tuple[int, int],
         elif size != (img.shape[1], img.shape[0]):
             raise SampleFileError(f"{f}: {what}: {img.shape[1]}x{img.shape[0]} px, but "
                                   f"{files[0].name} is {size[0]}x{size[1]}: one camera, one size")
-        views.append(detect_fields(img, [board]).get(board.name))
+        views.append(detect_target(img, board))
         raws.append(raw)
         if (k + 1) % 10 == 0 or k + 1 == len(files):
             _progress(f"{what}: detected the board in {sum(v is not None for v in views)} of "
@@ -343,29 +347,93 @@ def _detect(files: list[Path], board, what: str) -> tuple[list, tuple[int, int],
     return views, size, samples_digest(raws).encode()
 
 
+def _fit_options(args: argparse.Namespace) -> dict[str, Any]:
+    """``--min-views`` and ``--reject`` as keyword arguments of the calibrations (a bad
+    rule is a CalibrationError: exit 2 with the rule's syntax)."""
+    from oralnav.control.calibration.cameras import RejectRule
+
+    out: dict[str, Any] = {"reject": RejectRule.parse(args.reject)}
+    if args.min_views is not None:
+        out["min_views"] = args.min_views
+    return out
+
+
+#: --rig-out's format from the file's suffix where the suffix says it (YAML is ambiguous:
+#: OpenCV, ROS and Kalibr all write it)
+RIG_SUFFIX_FORMATS = {".toml": "toml", ".xml": "opencv", ".json": "opencv"}
+
+
+def _rig_out_format(args: argparse.Namespace) -> str | None:
+    """The format ``--rig-out`` is written in: ``--rig-format``, else the suffix's
+    (:data:`RIG_SUFFIX_FORMATS`). Checked before any calibration runs, so a name that does
+    not say its format costs nothing (a SampleFileError: exit 2)."""
+    if not args.rig_out:
+        if args.rig_format:
+            raise SampleFileError("--rig-format needs --rig-out FILE")
+        return None
+    if args.rig_format:
+        return args.rig_format
+    fmt = RIG_SUFFIX_FORMATS.get(Path(args.rig_out).suffix.lower())
+    if fmt is None:
+        raise SampleFileError(f"--rig-out {args.rig_out}: say which format with --rig-format "
+                              "toml|opencv|ros|kalibr (.toml is ours, .xml and .json are "
+                              "OpenCV's; a .yaml may be OpenCV's, ROS's or Kalibr's)")
+    return fmt
+
+
+def _with_files(rows: list[dict], files: list[Path]) -> list[dict]:
+    """The per-view table's rows with each view's image name."""
+    return [{"file": f.name, **r} for r, f in zip(rows, files, strict=True)]
+
+
+def _table(rows: list[dict], columns: dict[str, str]) -> str:
+    """The per-view table as text: index, image, the error columns (px), status and why."""
+    width = max([5] + [len(r["file"]) for r in rows])
+    head = f"  view  {'image':<{width}}" + "".join(f"  {c:>8}" for c in columns.values())
+    lines = [head + "  status"]
+    for r in rows:
+        errs = "".join(f"  {'-' if r[k] is None else format(r[k], '.3f'):>8}" for k in columns)
+        why = f": {r['why']}" if r["why"] else ""
+        lines.append(f"  {r['view']:>4}  {r['file']:<{width}}{errs}  {r['status']}{why}")
+    return "\n".join(lines)
+
+
+def _camera_text(name: str, res, rows: list[dict]) -> str:
+    limit = ("" if res.reject == "none" else f", limit {res.limit_px:.3f} px")
+    return (f"{name}: {res.model} model from {len(res.used)} of {len(rows)} views, RMS "
+            f"{res.rms:.3f} px; fx {res.K[0, 0]:.2f} fy {res.K[1, 1]:.2f} cx {res.K[0, 2]:.2f} "
+            f"cy {res.K[1, 2]:.2f}\noutlier rule {res.reject}{limit}\n"
+            + _table(rows, {"rms_px": "RMS px"}))
+
+
 def cmd_camera(args: argparse.Namespace) -> int:
     from oralnav.control.calibration.cameras import calibrate_camera
     from oralnav.control.vision.camera import Rig
 
     _needs_cell(args)
+    args.rig_out_format = _rig_out_format(args)
+    opts = _fit_options(args)
     board = _board(args)
     files = _images(args.images, "--images")
     views, size, digest = _detect(files, board, "--images")
-    res = calibrate_camera(views, board, size, model=args.model)
+    res = calibrate_camera(views, board, size, model=args.model, **opts)
     if res.model == "fisheye":
         raise SampleFileError("the rig format holds OpenCV's standard and rational models; a "
                               "fisheye fit cannot be written (use --model rational)")
     rig = Rig(args.name, {args.name: res.camera_model(args.name, np.eye(4))})
-    return _rig_result(args, "camera", rig, res.to_dict(), len(files), digest,
-                       f"{args.name}: {res.model} model from {len(res.used)} of {len(files)} "
-                       f"views, RMS {res.rms:.3f} px; fx {res.K[0, 0]:.2f} fy {res.K[1, 1]:.2f} "
-                       f"cx {res.K[0, 2]:.2f} cy {res.K[1, 2]:.2f}\n{res.coverage.describe()}")
+    doc = res.to_dict()
+    doc["views"] = _with_files(doc["views"], files)
+    return _rig_result(args, "camera", rig, doc, len(files), digest,
+                       _camera_text(args.name, res, doc["views"]) + "\n"
+                       + res.coverage.describe())
 
 
 def cmd_stereo(args: argparse.Namespace) -> int:
     from oralnav.control.calibration.cameras import calibrate_camera, calibrate_stereo
 
     _needs_cell(args)
+    args.rig_out_format = _rig_out_format(args)
+    opts = _fit_options(args)
     board = _board(args)
     names = args.names.split(",")
     if len(names) != 2 or not all(names):
@@ -377,21 +445,33 @@ def cmd_stereo(args: argparse.Namespace) -> int:
                               "stereo pair must share its name in both folders")
     lv, lsize, ld = _detect(lf, board, "--left")
     rv, rsize, rd = _detect(rf, board, "--right")
-    cams = [calibrate_camera(v, board, sz, model=args.model) for v, sz in ((lv, lsize),
-                                                                          (rv, rsize))]
+    cams = [calibrate_camera(v, board, sz, model=args.model, **opts)
+            for v, sz in ((lv, lsize), (rv, rsize))]
     left, right = (c.camera_model(n, np.eye(4)) for c, n in zip(cams, names, strict=True))
-    res = calibrate_stereo(lv, rv, board, left, right, refine_intrinsics=args.refine)
+    res = calibrate_stereo(lv, rv, board, left, right, refine_intrinsics=args.refine, **opts)
     doc = res.to_dict()
-    doc["intrinsics"] = {n: c.to_dict() for n, c in zip(names, cams, strict=True)}
+    doc["views"] = _with_files(doc["views"], lf)
+    doc["intrinsics"] = {}
+    texts = []
+    for n, c in zip(names, cams, strict=True):
+        d = c.to_dict()
+        d["views"] = _with_files(d["views"], lf)
+        doc["intrinsics"][n] = d
+        texts.append(_camera_text(n, c, d["views"]))
+    limit = "" if res.reject == "none" else f", limit {res.limit_px:.3f} px over both images"
     return _rig_result(args, "stereo", res.rig(), doc, len(lf), samples_digest([ld, rd]).encode(),
+                       "\n".join(texts) + "\n"
                        f"{names[1]} in {names[0]}: baseline {res.baseline * 1e3:.3f} mm, RMS "
                        f"{res.rms:.3f} px, epipolar RMS {res.epipolar_rms_px:.3f} px, from "
-                       f"{len(res.used)} of {len(lf)} pairs\n{_matrix(res.T_left_right)}")
+                       f"{len(res.used)} of {len(lf)} pairs\n{_matrix(res.T_left_right)}\n"
+                       f"outlier rule {res.reject}{limit}\n"
+                       + _table(doc["views"], {"rms_left_px": names[0] + " px",
+                                               "rms_right_px": names[1] + " px"}))
 
 
 def _rig_result(args: argparse.Namespace, kind: str, rig, doc: dict, n: int, digest: bytes,
                 text: str) -> int:
-    from oralnav.config.rig import save_rig
+    from oralnav.config.rig import save_rig_as
 
     # a view without the board has no error: written as -1 (TOML has no NaN)
     per_view = np.array([[-1.0 if e is None else e for e in np.atleast_1d(row)]
@@ -403,11 +483,12 @@ def _rig_result(args: argparse.Namespace, kind: str, rig, doc: dict, n: int, dig
                       residuals={"rms_px": float(doc["rms_px"]),
                                  "per_view_rms_px": per_view.ravel().tolist()},
                       quality={"used_views": [float(i) for i in doc.get("used", [])]})
+    if args.rig_out:  # first: a format that cannot hold the rig refuses before any write
+        save_rig_as(rig, args.rig_out, args.rig_out_format)
+        _progress(f"wrote rig file {args.rig_out} ({args.rig_out_format})")
     path = _write(args, cal)
-    if args.rig_out:
-        save_rig(rig, args.rig_out)
-        _progress(f"wrote rig file {args.rig_out}")
-    doc.update({"kind": kind, "out": path, "rig_out": args.rig_out})
+    doc.update({"kind": kind, "out": path, "rig_out": args.rig_out,
+                "rig_format": args.rig_out_format})
     _emit_result(args, doc, text)
     return 0
 
@@ -647,20 +728,35 @@ def add_parser(sub: argparse._SubParsersAction, nested: bool = False) -> None:
     def board(p: argparse.ArgumentParser) -> None:
         p.add_argument("--fields", required=True, help="marker-field TOML describing the board")
         p.add_argument("--board", default="board", help="the board's name in --fields")
-        p.add_argument("--model", default="standard", choices=["standard", "rational"],
-                       help="distortion model: standard (5 coefficients) or rational (8, for "
-                            "strong distortion such as the endoscope's)")
-        p.add_argument("--rig-out", help="also write the result as a rig file")
+        p.add_argument("--model", default="standard", choices=["radtan", "standard", "rational"],
+                       help="distortion model: standard (5 coefficients), radtan (4, k3 held "
+                            "at 0: what Kalibr's camchain holds) or rational (8, for strong "
+                            "distortion such as the endoscope's)")
+        p.add_argument("--rig-out", help="also write the result as a rig file (a folder for a "
+                                         "ROS stereo pair)")
+        p.add_argument("--rig-format", choices=["toml", "opencv", "ros", "kalibr"],
+                       help="--rig-out's format: ours (toml), OpenCV FileStorage, ROS "
+                            "camera_info or Kalibr camchain (default: from the suffix, "
+                            ".toml ours, .xml/.json OpenCV's)")
+        p.add_argument("--min-views", type=int, default=None,
+                       help="fewest usable views a fit accepts, also the floor of outlier "
+                            "rejection (default 6 per camera, 5 stereo pairs)")
+        p.add_argument("--reject", default="default", metavar="RULE",
+                       help="outlier views: none, or terms NAME:VALUE joined by commas, a "
+                            "view dropped above the largest: mad:K (median + K robust "
+                            "sigmas), median:F (F x median), floor:P (median + P px), px:P "
+                            "(P px); default mad:4,median:2,floor:0.25 (docs/calibration.md)")
         common(p)
 
-    cm = cal.add_parser("camera", help="one camera's intrinsics from ChArUco board images")
+    cm = cal.add_parser("camera", help="one camera's intrinsics from images of a flat target "
+                        "(ChArUco, chessboard, circle grid, ArUco grid)")
     cm.add_argument("--images", required=True, help="folder of the camera's board images")
     cm.add_argument("--name", default="camera", help="the camera's name in the rig")
     board(cm)
     cm.set_defaults(func=cmd_camera)
 
     st = cal.add_parser("stereo", help="both cameras' intrinsics and the right camera in the "
-                        "left from synchronised board images")
+                        "left from synchronised images of a flat target")
     st.add_argument("--left", required=True, help="folder of the left camera's images")
     st.add_argument("--right", required=True, help="folder of the right camera's images "
                     "(same file names: a pair per name)")

@@ -1,15 +1,18 @@
-"""Intrinsic and stereo calibration from detected ChArUco board views.
+"""Intrinsic and stereo calibration from detected views of a flat target.
 
-Pure math on detections: a *view* is what the corner detector found in one image of a flat
-ChArUco board, the board's chessboard corner ids (N,) and their pixel positions (N x 2)
-(a :class:`~oralnav.control.vision.detection.FieldCorners`, or an ``(ids, px)`` pair); ``None``
-stands for an image in which the board was not found, so that index ``k`` of a left and a
-right list stays the same instant. OpenCV is the solver (``calibrateCameraExtended``,
-``fisheye.calibrate``, ``stereoCalibrateExtended``); this module checks the input, rejects
-outlier views, detects degenerate view sets and reports image coverage.
+Pure math on detections: a *view* is what a detector found in one image of a flat target
+(a ChArUco field, or a chessboard, circle grid, ArUco grid or custom-dictionary ChArUco
+board of :mod:`oralnav.control.calibration.targets`): the target's point ids (N,) and their
+pixel positions (N x 2) (a :class:`~oralnav.control.vision.detection.FieldCorners`, or an
+``(ids, px)`` pair); ``None`` stands for an image in which the target was not found, so
+that index ``k`` of a left and a right list stays the same instant. OpenCV is the solver
+(``calibrateCameraExtended``, ``fisheye.calibrate``, ``stereoCalibrateExtended``); this
+module checks the input, rejects outlier views, detects degenerate view sets and reports
+image coverage.
 
 Frames and units: pixels with the centre of the top-left pixel at (0, 0); the board frame is
-the field frame of :mod:`oralnav.control.vision.markers` (metres); ``T_cam_board`` is the board's
+the field frame of :mod:`oralnav.control.vision.markers` or the target frame of
+:mod:`oralnav.control.calibration.targets` (metres); ``T_cam_board`` is the board's
 pose in the camera frame, ``T_left_right`` the right camera's pose in the left camera's
 frame (metres), i.e. the right camera's ``T_ref_cam`` in a rig whose reference is the left
 camera.
@@ -21,16 +24,19 @@ estimate a view in a strongly distorted image corner can settle in a local minim
 
 Outlier views. Each round calibrates on the accepted views and computes every view's RMS
 reprojection error e_i (a view left out has its pose solved alone under that round's
-intrinsics). With m the median of the accepted views' e_i and s = 1.4826 * MAD (their
-median absolute deviation, scaled to a standard deviation for normal data), a view is an
-outlier when ``e_i > m + max(k * s, floor_px, m)``: k (``outlier_k``, default 4)
-standard deviations above the median, but never within ``floor_px`` (default 0.25 px) of
-it nor below twice the median, so a set of uniformly good views loses nothing to the
-spread of its own noise. The next round is fitted, from scratch, to the views that are not
+intrinsics). A :class:`RejectRule` sets the limit from the accepted views' e_i: with m
+their median and s = 1.4826 * MAD (their median absolute deviation, scaled to a standard
+deviation for normal data), each term of the rule gives a limit (``mad:K`` m + K s,
+``median:F`` F m, ``floor:P`` m + P px, ``px:P`` P px) and a view is an outlier when its
+e_i exceeds the largest of them. The default, ``mad:4,median:2,floor:0.25``, puts the
+limit at ``m + max(4 s, 0.25 px, m)``: four standard deviations above the median, but
+never within 0.25 px of it nor below twice the median, so a set of uniformly good views
+loses nothing to the spread of its own noise (``outlier_k`` and ``outlier_floor_px`` set
+its 4 and 0.25). The next round is fitted, from scratch, to the views that are not
 outliers; a good view that a gross outlier's pull made look bad comes back once the
 outlier is out. The rounds stop when the set of outliers no longer changes (at most
 ``max_rounds`` fits). The worst views are rejected first, and the accepted set never
-shrinks below ``min_views``.
+shrinks below ``min_views``; each result says, per view, why it was dropped.
 
 A view whose corner ids are wrong (a misread marker, a permuted list) can wreck the first
 fit of a single camera so thoroughly, through free distortion coefficients, that every
@@ -54,8 +60,8 @@ nonsense.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
-from typing import Any, Literal
+from dataclasses import dataclass, field, replace
+from typing import Any, ClassVar, Literal
 
 import cv2
 import numpy as np
@@ -66,24 +72,29 @@ from oralnav.control.vision.camera import CameraModel, Rig
 from oralnav.control.vision.detection import FieldCorners
 from oralnav.control.vision.markers import MarkerField, PlaneSurface
 
+from .targets import Target
+
 __all__ = [
+    "DEFAULT_REJECT",
     "MODELS",
     "CalibrationError",
     "CameraCalibration",
     "Coverage",
+    "RejectRule",
     "StereoCalibration",
     "calibrate_camera",
     "calibrate_stereo",
     "image_coverage",
 ]
 
-Model = Literal["standard", "rational", "fisheye"]
+Model = Literal["radtan", "standard", "rational", "fisheye"]
 
 #: Distortion models and the length of their coefficient vector (OpenCV order):
+#: ``radtan`` k1 k2 p1 p2 (k3 held at 0: Kalibr's radtan, which cannot hold a k3);
 #: ``standard`` k1 k2 p1 p2 k3; ``rational`` k1 k2 p1 p2 k3 k4 k5 k6 (``CALIB_RATIONAL_MODEL``);
 #: ``fisheye`` OpenCV's equidistant fisheye model, k1 k2 k3 k4 (``cv2.fisheye``; these are
 #: not pinhole coefficients and :class:`CameraModel` cannot hold them).
-MODELS: Mapping[str, int] = {"standard": 5, "rational": 8, "fisheye": 4}
+MODELS: Mapping[str, int] = {"radtan": 4, "standard": 5, "rational": 8, "fisheye": 4}
 
 #: Default minimum numbers of usable views (single camera, stereo pair) and of corners in a
 #: usable view.
@@ -98,6 +109,9 @@ _CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
 
 
 ViewLike = FieldCorners | tuple[Any, Any] | None
+#: A flat calibration target: a tracked ChArUco field on a plane, or a target of
+#: :mod:`oralnav.control.calibration.targets`.
+Board = MarkerField | Target
 
 
 # -- input ---------------------------------------------------------------------------------
@@ -121,16 +135,24 @@ def _check_size(image_size: Any, what: str = "image_size") -> tuple[int, int]:
     return w, h
 
 
-def _check_board(board: MarkerField) -> None:
+def _check_board(board: Board) -> None:
+    if isinstance(board, Target):
+        return  # every target is flat
     if not isinstance(board, MarkerField):
-        raise CalibrationError(f"board_field must be a MarkerField, got {type(board).__name__}")
+        raise CalibrationError(f"board_field must be a MarkerField or a calibration Target, "
+                               f"got {type(board).__name__}")
     if not isinstance(board.surface, PlaneSurface):
         raise CalibrationError(
             f"board {board.name!r} has a {board.surface.kind} surface; calibration needs a "
             "flat board (plane surface)")
 
 
-def _parse_view(v: ViewLike, k: int, board: MarkerField, size: tuple[int, int],
+def _pitch(board: Board) -> float:
+    """The board's point spacing (m): a ChArUco square, a target's pitch."""
+    return board.pitch if isinstance(board, Target) else float(board.square)
+
+
+def _parse_view(v: ViewLike, k: int, board: Board, size: tuple[int, int],
                 where: str) -> _View | None:
     """Check one view and pair its corners with the board model; ``None`` stays ``None``."""
     if v is None:
@@ -181,18 +203,18 @@ def _parse_view(v: ViewLike, k: int, board: MarkerField, size: tuple[int, int],
     return _View(k, ids, obj, px)
 
 
-def _too_thin(view: _View, board: MarkerField, min_corners: int) -> str | None:
+def _too_thin(view: _View, board: Board, min_corners: int) -> str | None:
     """Why a view cannot constrain a calibration, or None when it can."""
     n = len(view.ids)
     if n < max(3, min_corners):
         return f"{n} corners (fewer than {max(3, min_corners)})"
     xy = view.obj[:, :2] - view.obj[:, :2].mean(axis=0)
-    if np.linalg.svd(xy, compute_uv=False)[1] < 0.5 * board.square:
+    if np.linalg.svd(xy, compute_uv=False)[1] < 0.5 * _pitch(board):
         return "its corners lie on one line of the board"
     return None
 
 
-def parse_views(views: Sequence[ViewLike], board: MarkerField, size: tuple[int, int],
+def parse_views(views: Sequence[ViewLike], board: Board, size: tuple[int, int],
                  min_corners: int | None, where: str
                  ) -> tuple[list[_View | None], dict[int, str]]:
     """Check every view; with ``min_corners``, views too thin to use become ``None`` and
@@ -246,14 +268,124 @@ def _homography_normals(views: Sequence[_View], K: np.ndarray) -> np.ndarray:
     return np.asarray(out).reshape(-1, 3)
 
 
-def homography_screen(views: Sequence[_View], k: float, floor_px: float) -> list[int]:
+@dataclass(frozen=True)
+class RejectRule:
+    """When a view's RMS error (px) makes it an outlier (module docstring): when it exceeds
+    the largest limit of the terms given. A rule without terms rejects nothing.
+
+    Attributes:
+        mad: ``K`` of the limit ``m + K s`` (robust standard deviations above the median).
+        median: ``F`` of the limit ``F m`` (at least 1).
+        floor_px: ``P`` of the limit ``m + P`` (px above the median).
+        max_px: an absolute limit (px).
+    """
+
+    mad: float | None = None
+    median: float | None = None
+    floor_px: float | None = None
+    max_px: float | None = None
+
+    #: The terms' names in :meth:`parse` and ``str()``, and their attributes.
+    TERMS: ClassVar[Mapping[str, str]] = {"mad": "mad", "median": "median",
+                                          "floor": "floor_px", "px": "max_px"}
+
+    def __post_init__(self) -> None:
+        for name, attr in self.TERMS.items():
+            v = getattr(self, attr)
+            if v is None:
+                continue
+            least = 1.0 if name == "median" else 0.0
+            if isinstance(v, bool) or not isinstance(v, int | float) or not (
+                    np.isfinite(v) and v >= least and (v > 0 or name == "floor")):
+                raise CalibrationError(
+                    f"reject rule {name}: expected a finite number "
+                    f"{'>= 1' if name == 'median' else '>= 0' if name == 'floor' else '> 0'}"
+                    f", got {v!r}")
+
+    @property
+    def enabled(self) -> bool:
+        return any(getattr(self, a) is not None for a in self.TERMS.values())
+
+    @classmethod
+    def parse(cls, text: str) -> RejectRule:
+        """A rule from its text: ``none``, or terms ``NAME:VALUE`` joined by commas
+        (``median:2``, ``mad:4,median:2,floor:0.25``); ``default`` is
+        :data:`DEFAULT_REJECT`."""
+        t = str(text).strip().lower()
+        if t == "none":
+            return cls()
+        if t == "default":
+            return DEFAULT_REJECT
+        values: dict[str, float] = {}
+        for part in t.split(","):
+            name, sep, value = part.strip().partition(":")
+            if not sep or name not in cls.TERMS:
+                raise CalibrationError(
+                    f"reject rule {text!r}: {part.strip()!r} is not a term NAME:VALUE with NAME "
+                    f"one of {', '.join(cls.TERMS)} (or give none, or default)")
+            if cls.TERMS[name] in values:
+                raise CalibrationError(f"reject rule {text!r}: {name} given twice")
+            try:
+                values[cls.TERMS[name]] = float(value)
+            except ValueError:
+                raise CalibrationError(f"reject rule {text!r}: {name}: {value!r} is not a "
+                                       "number") from None
+        return cls(**values)
+
+    def __str__(self) -> str:
+        terms = [f"{n}:{getattr(self, a):g}" for n, a in self.TERMS.items()
+                 if getattr(self, a) is not None]
+        return ",".join(terms) if terms else "none"
+
+    def limit(self, errors: Sequence[float]) -> tuple[float, str]:
+        """The limit (px) that ``errors`` (the accepted views' RMS, px) set, and the term
+        that set it in words; ``(inf, "no rejection")`` for a rule without terms."""
+        e = np.asarray(errors, dtype=float)
+        m = float(np.median(e))
+        s = 1.4826 * float(np.median(np.abs(e - m)))
+        cands = []
+        if self.mad is not None:
+            cands.append((m + self.mad * s, f"median {m:.3f} px + {self.mad:g} x {s:.3f} px "
+                                            "robust sigma"))
+        if self.median is not None:
+            cands.append((self.median * m, f"{self.median:g} x median {m:.3f} px"))
+        if self.floor_px is not None:
+            cands.append((m + self.floor_px, f"median {m:.3f} px + {self.floor_px:g} px"))
+        if self.max_px is not None:
+            cands.append((self.max_px, f"{self.max_px:g} px"))
+        return max(cands, key=lambda c: c[0]) if cands else (np.inf, "no rejection")
+
+
+#: Today's rule: ``m + max(4 s, 0.25 px, m)`` (module docstring).
+DEFAULT_REJECT = RejectRule(mad=4.0, median=2.0, floor_px=0.25)
+
+
+def _rule(reject: RejectRule | str | None, reject_outliers: bool, k: float,
+          floor_px: float) -> RejectRule:
+    """The rule a calibration runs: ``reject`` when given, else the default one with
+    ``outlier_k`` and ``outlier_floor_px`` (none when ``reject_outliers`` is false)."""
+    if isinstance(reject, str):
+        return RejectRule.parse(reject)
+    if isinstance(reject, RejectRule):
+        return reject
+    if reject is not None:
+        raise CalibrationError(f"reject must be a RejectRule or its text, got "
+                               f"{type(reject).__name__}")
+    return RejectRule(mad=k, median=2.0, floor_px=floor_px) if reject_outliers else RejectRule()
+
+
+def homography_screen(views: Sequence[_View], rule: RejectRule = DEFAULT_REJECT) -> list[int]:
     """Indices of views whose corners no plane-to-image homography fits (module docstring).
 
     The RMS residual (px) of each view's own least-squares homography is large for every
     view under strong distortion (several px at the image corners), but an order of
     magnitude larger again for a view whose corner ids are wrong; the outlier rule on these
-    residuals picks out such a view before it can take part in the first fit.
+    residuals picks out such a view before it can take part in the first fit. An absolute
+    term (``px:``) of ``rule`` is left out: distortion alone puts good views above it.
     """
+    rule = replace(rule, max_px=None)
+    if not rule.enabled:
+        return []
     res: dict[int, float] = {}
     for v in views:
         H, _ = cv2.findHomography(v.obj[:, :2], v.px, 0)
@@ -262,7 +394,7 @@ def homography_screen(views: Sequence[_View], k: float, floor_px: float) -> list
             continue
         q = cv2.perspectiveTransform(v.obj[None, :, :2].astype(float), H)[0]
         res[v.index] = _rms(q - v.px)
-    limit = _limit(list(res.values()), k, floor_px)
+    limit, _ = rule.limit(list(res.values()))
     return sorted(i for i, e in res.items() if e > limit)
 
 
@@ -402,7 +534,7 @@ def _solve_pnp(model: str, K: np.ndarray, dist: np.ndarray, v: _View) -> np.ndar
 
 def _model_flags(n_dist: int) -> int:
     """OpenCV flags enabling the coefficients of a pinhole distortion vector's length."""
-    flags = 0
+    flags = cv2.CALIB_FIX_K3 if n_dist == 4 else 0
     if n_dist >= 8:
         flags |= cv2.CALIB_RATIONAL_MODEL
     if n_dist >= 12:
@@ -478,14 +610,6 @@ def _fit_staged(model: str, views: Sequence[_View], size: tuple[int, int],
     return _fit(model, views, size, first.K, first.dist, flags, criteria)
 
 
-def _limit(errors: Sequence[float], k: float, floor_px: float) -> float:
-    """Per-view RMS error (px) above which a view is an outlier (module docstring)."""
-    e = np.asarray(errors, dtype=float)
-    med = float(np.median(e))
-    sigma = 1.4826 * float(np.median(np.abs(e - med)))
-    return med + max(k * sigma, floor_px, med)
-
-
 @dataclass
 class _Robust:
     state: Any                  # the last fit
@@ -493,13 +617,14 @@ class _Robust:
     rejected: list[int]
     errors: dict[int, float]    # RMS error (px) of every view under it
     rounds: int
+    limit: float = np.inf       # the last round's limit (px) and what set it
+    how: str = "no rejection"
 
 
 def robust_fit(indices: Sequence[int], fit: Callable[[list[int]], Any],
-                errors: Callable[[Any, list[int]], dict[int, float]], *, reject: bool,
-                min_views: int, k: float, floor_px: float, max_rounds: int,
-                first_out: Sequence[int] = ()) -> _Robust:
-    """The outlier loop of the module docstring.
+                errors: Callable[[Any, list[int]], dict[int, float]], *, rule: RejectRule,
+                min_views: int, max_rounds: int, first_out: Sequence[int] = ()) -> _Robust:
+    """The outlier loop of the module docstring, under ``rule`` (no term: no rejection).
 
     ``fit(active)`` calibrates on the active views, from scratch (a previous fit may be
     skewed by the outliers this round leaves out); ``errors(state, views)`` gives each
@@ -509,6 +634,7 @@ def robust_fit(indices: Sequence[int], fit: Callable[[list[int]], Any],
     once the outlier is out. ``first_out`` are views left out of the first fit only (a
     screen's suspects): they are sorted against that fit like every other view.
     """
+    reject = rule.enabled
     rejected = sorted(first_out)[:max(0, len(indices) - min_views)] if reject else []
     rounds = 0
     while True:
@@ -518,12 +644,44 @@ def robust_fit(indices: Sequence[int], fit: Callable[[list[int]], Any],
         if not reject:
             return _Robust(state, active, [], errors(state, active), rounds)
         err = errors(state, list(indices))
-        limit = _limit([err[i] for i in active], k, floor_px)
+        limit, how = rule.limit([err[i] for i in active])
         worst = sorted((i for i in indices if err[i] > limit), key=lambda i: -err[i])
         worst = sorted(worst[:max(0, len(indices) - min_views)])
         if worst == rejected or rounds >= max_rounds:
-            return _Robust(state, active, rejected, err, rounds)
+            return _Robust(state, active, rejected, err, rounds, limit, how)
         rejected = worst
+
+
+def _reasons(rob: _Robust, min_views: int, max_rounds: int) -> dict[int, str]:
+    """Why each rejected view was dropped, and why a view above the limit was kept."""
+    out: dict[int, str] = {}
+    for i in rob.rejected:
+        e = rob.errors.get(i, np.inf)
+        if not np.isfinite(e):
+            out[i] = "its board pose could not be solved under the fitted intrinsics"
+        elif e > rob.limit:
+            out[i] = f"{e:.3f} px > limit {rob.limit:.3f} px ({rob.how})"
+        else:  # the loop stopped on max_rounds with the set still changing
+            out[i] = (f"{e:.3f} px, under the last limit {rob.limit:.3f} px, but the outlier "
+                      f"loop stopped at max_rounds ({max_rounds}) with it out")
+    for i in rob.active:
+        e = rob.errors.get(i, np.nan)
+        if e > rob.limit:
+            out[i] = (f"{e:.3f} px > limit {rob.limit:.3f} px ({rob.how}), kept: dropping it "
+                      f"would leave fewer than min_views ({min_views})")
+    return out
+
+
+def _view_rows(n: int, used: Sequence[int], rejected: Sequence[int],
+               skipped: Mapping[int, str], why: Mapping[int, str]) -> list[dict]:
+    """One row per input view: index, status (``used``, ``dropped``, ``skipped``) and why
+    (``None`` for a used view within the limit)."""
+    rows = []
+    for i in range(n):
+        status = ("used" if i in used else "dropped" if i in rejected else "skipped")
+        rows.append({"view": i, "status": status,
+                     "why": skipped.get(i) if status == "skipped" else why.get(i)})
+    return rows
 
 
 # -- single camera ------------------------------------------------------------------------
@@ -532,7 +690,7 @@ class CameraCalibration:
     """Result of :func:`calibrate_camera`.
 
     Attributes:
-        model: ``"standard"``, ``"rational"`` or ``"fisheye"`` (see :data:`MODELS`).
+        model: ``"radtan"``, ``"standard"``, ``"rational"`` or ``"fisheye"`` (see :data:`MODELS`).
         image_size: ``(width, height)`` px.
         K: 3 x 3 intrinsic matrix (px).
         dist: distortion coefficients, OpenCV order, the model's full length.
@@ -551,6 +709,9 @@ class CameraCalibration:
         coverage: where the accepted views' corners fell in the image.
         rounds: fits run by the outlier loop (each one two OpenCV passes).
         n_corners: corners in the accepted views.
+        reject: the outlier rule run (:class:`RejectRule`'s text).
+        limit_px: the outlier limit of the last round (px; inf without rejection).
+        why: view index -> why it was dropped (or kept above the limit).
     """
 
     model: str
@@ -569,6 +730,18 @@ class CameraCalibration:
     coverage: Coverage
     rounds: int
     n_corners: int
+    reject: str = "none"
+    limit_px: float = np.inf
+    why: Mapping[int, str] = field(default_factory=dict)
+
+    def views(self) -> list[dict]:
+        """The per-view table: one row per input view, ``view`` (index), ``rms_px``
+        (``None`` where skipped), ``status`` (``used``, ``dropped``, ``skipped``), ``why``."""
+        rows = _view_rows(len(self.per_view_rms), self.used, self.rejected, self.skipped,
+                          self.why)
+        for r, e in zip(rows, self.per_view_rms, strict=True):
+            r["rms_px"] = None if np.isnan(e) else float(e)
+        return rows
 
     def camera_model(self, name: str = "camera",
                      T_ref_cam: np.ndarray | None = None) -> CameraModel:
@@ -591,30 +764,37 @@ class CameraCalibration:
                 "K_std": [None if np.isnan(s) else float(s) for s in self.K_std],
                 "dist_std": [None if np.isnan(s) else float(s) for s in self.dist_std],
                 "normal_spread_deg": self.normal_spread_deg, "rounds": self.rounds,
-                "n_corners": self.n_corners, "coverage": self.coverage.to_dict()}
+                "n_corners": self.n_corners, "coverage": self.coverage.to_dict(),
+                "reject": self.reject,
+                "limit_px": None if not np.isfinite(self.limit_px) else self.limit_px,
+                "views": self.views()}
 
 
-def calibrate_camera(views: Sequence[ViewLike], board_field: MarkerField,
+def calibrate_camera(views: Sequence[ViewLike], board_field: Board,
                      image_size: tuple[int, int], *, model: Model = "standard",
                      min_views: int = MIN_VIEWS, min_corners: int = MIN_CORNERS,
                      reject_outliers: bool = True, outlier_k: float = 4.0,
                      outlier_floor_px: float = 0.25, max_rounds: int = 5,
+                     reject: RejectRule | str | None = None,
                      min_normal_spread_deg: float = 5.0,
                      K_guess: np.ndarray | None = None, flags: int = 0,
                      coverage_grid: tuple[int, int] = (8, 6),
                      criteria: tuple = _CRITERIA) -> CameraCalibration:
-    """Calibrate one camera's intrinsics from views of the flat ChArUco ``board_field``.
+    """Calibrate one camera's intrinsics from views of the flat target ``board_field``.
 
     Args:
         views: one entry per image: the detected corners (``FieldCorners`` or
             ``(ids (N,), px (N x 2))``), or ``None`` where the board was not found.
-        board_field: the board shown (plane surface; metres).
+        board_field: the target shown: a ChArUco field on a plane surface, or a
+            :class:`~oralnav.control.calibration.targets.Target` (metres).
         image_size: ``(width, height)`` of the images, px.
         model: distortion model, see :data:`MODELS`.
         min_views: fewest usable views accepted (also the floor of outlier rejection).
         min_corners: views with fewer corners are skipped (and reported).
-        reject_outliers, outlier_k, outlier_floor_px, max_rounds: the outlier rule of the
-            module docstring.
+        reject_outliers, outlier_k, outlier_floor_px, max_rounds: the default outlier
+            rule of the module docstring, its K and floor, and the most fits.
+        reject: another outlier rule (a :class:`RejectRule` or its text, e.g.
+            ``"median:3"``, ``"none"``); replaces the three above.
         min_normal_spread_deg: required spread of board orientations (module docstring).
         K_guess: initial 3 x 3 intrinsics (``CALIB_USE_INTRINSIC_GUESS``); optional.
         flags: extra OpenCV calibration flags (e.g. ``cv2.CALIB_FIX_ASPECT_RATIO``).
@@ -629,6 +809,9 @@ def calibrate_camera(views: Sequence[ViewLike], board_field: MarkerField,
         raise CalibrationError(f"model must be one of {sorted(MODELS)}, got {model!r}")
     size = _check_size(image_size)
     _check_board(board_field)
+    rule = _rule(reject, reject_outliers, outlier_k, outlier_floor_px)
+    if isinstance(min_views, bool) or not isinstance(min_views, int | np.integer):
+        raise CalibrationError(f"min_views must be a whole number, got {min_views!r}")
     if min_views < 3:
         raise CalibrationError(f"min_views must be at least 3, got {min_views}")
     if K_guess is not None and np.asarray(K_guess).shape != (3, 3):
@@ -662,10 +845,9 @@ def calibrate_camera(views: Sequence[ViewLike], board_field: MarkerField,
                 poses.setdefault(i, T)
         return out
 
-    rob = robust_fit(sorted(by_index), fit_views, view_errors, reject=reject_outliers,
-                      min_views=min_views, k=outlier_k, floor_px=outlier_floor_px,
-                      max_rounds=max_rounds,
-                      first_out=homography_screen(usable, outlier_k, outlier_floor_px))
+    rob = robust_fit(sorted(by_index), fit_views, view_errors, rule=rule,
+                      min_views=min_views, max_rounds=max_rounds,
+                      first_out=homography_screen(usable, rule))
     fit, poses = rob.state
     order = rob.active
     spread = _normal_spread_deg(np.array([poses[i][:3, 2] for i in order]))
@@ -684,7 +866,8 @@ def calibrate_camera(views: Sequence[ViewLike], board_field: MarkerField,
         rejected=tuple(rob.rejected), skipped=dict(skipped), K_std=fit.K_std,
         dist_std=fit.dist_std, normal_spread_deg=spread,
         coverage=_coverage([by_index[i].px for i in order], size, coverage_grid),
-        rounds=rob.rounds, n_corners=len(res))
+        rounds=rob.rounds, n_corners=len(res), reject=str(rule), limit_px=float(rob.limit),
+        why=_reasons(rob, min_views, max_rounds))
 
 
 # -- stereo -------------------------------------------------------------------------------
@@ -708,6 +891,8 @@ class StereoCalibration:
         T_left_board: board pose in the left camera per input view (``None`` if skipped).
         refined: whether the intrinsics were refined with the extrinsics.
         n_corners: shared corners in the accepted views.
+        reject, limit_px, why: as in :class:`CameraCalibration`, on the per-view RMS
+            over both images.
     """
 
     T_left_right: np.ndarray
@@ -725,6 +910,19 @@ class StereoCalibration:
     refined: bool
     rounds: int
     n_corners: int
+    reject: str = "none"
+    limit_px: float = np.inf
+    why: Mapping[int, str] = field(default_factory=dict)
+
+    def views(self) -> list[dict]:
+        """The per-view table: one row per synchronized view, ``view``, ``rms_left_px``,
+        ``rms_right_px`` (``None`` where skipped), ``status`` and ``why``."""
+        rows = _view_rows(len(self.per_view_rms), self.used, self.rejected, self.skipped,
+                          self.why)
+        for r, (a, b) in zip(rows, self.per_view_rms, strict=True):
+            r["rms_left_px"] = None if np.isnan(a) else float(a)
+            r["rms_right_px"] = None if np.isnan(b) else float(b)
+        return rows
 
     def rig(self, left: str = "left", right: str = "right") -> Rig:
         """A two-camera rig with the left camera as its reference."""
@@ -742,7 +940,9 @@ class StereoCalibration:
                 "skipped": {str(k): v for k, v in self.skipped.items()},
                 "epipolar_rms_px": self.epipolar_rms_px,
                 "epipolar_max_px": self.epipolar_max_px, "refined": self.refined,
-                "rounds": self.rounds, "n_corners": self.n_corners,
+                "rounds": self.rounds, "n_corners": self.n_corners, "reject": self.reject,
+                "limit_px": None if not np.isfinite(self.limit_px) else self.limit_px,
+                "views": self.views(),
                 "left": {"K": self.left.K.tolist(), "dist": self.left.dist.tolist()},
                 "right": {"K": self.right.K.tolist(), "dist": self.right.dist.tolist()}}
 
@@ -760,7 +960,7 @@ def _as_camera(c: CameraCalibration | CameraModel, name: str) -> CameraModel:
                            f"got {type(c).__name__}")
 
 
-def _shared(a: _View, b: _View, board: MarkerField) -> tuple[_View, _View]:
+def _shared(a: _View, b: _View, board: Board) -> tuple[_View, _View]:
     common, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
     return (_View(a.index, common, a.obj[ia], a.px[ia]),
             _View(b.index, common, b.obj[ib], b.px[ib]))
@@ -796,27 +996,28 @@ def _stereo_errors(K1: np.ndarray, d1: np.ndarray, K2: np.ndarray, d2: np.ndarra
 
 
 def calibrate_stereo(views_left: Sequence[ViewLike], views_right: Sequence[ViewLike],
-                     board_field: MarkerField, left: CameraCalibration | CameraModel,
+                     board_field: Board, left: CameraCalibration | CameraModel,
                      right: CameraCalibration | CameraModel, *,
                      refine_intrinsics: bool = False, min_views: int = MIN_STEREO_VIEWS,
                      min_corners: int = MIN_CORNERS, reject_outliers: bool = True,
                      outlier_k: float = 4.0, outlier_floor_px: float = 0.25,
-                     max_rounds: int = 5, criteria: tuple = _CRITERIA) -> StereoCalibration:
+                     max_rounds: int = 5, reject: RejectRule | str | None = None,
+                     criteria: tuple = _CRITERIA) -> StereoCalibration:
     """Calibrate the pose of the right camera in the left one from synchronized views.
 
     Args:
         views_left, views_right: one entry per instant (the same index is the same
             instant), as in :func:`calibrate_camera`; only corners seen in both images of
             an instant are used.
-        board_field: the flat ChArUco board shown (metres).
+        board_field: the flat target shown, as in :func:`calibrate_camera` (metres).
         left, right: the cameras' intrinsics, from :func:`calibrate_camera` (standard or
             rational model) or as :class:`CameraModel` (its ``T_ref_cam`` is ignored).
         refine_intrinsics: refine the intrinsics with the extrinsics (they start from
             ``left``/``right``); by default they stay fixed.
         min_views: fewest usable synchronized views accepted.
         min_corners: instants with fewer shared corners are skipped (and reported).
-        reject_outliers, outlier_k, outlier_floor_px, max_rounds: the outlier rule of the
-            module docstring, on the per-view RMS over both images.
+        reject_outliers, outlier_k, outlier_floor_px, max_rounds, reject: the outlier rule
+            as in :func:`calibrate_camera`, on the per-view RMS over both images.
         criteria: OpenCV termination criteria.
 
     Raises:
@@ -826,6 +1027,9 @@ def calibrate_stereo(views_left: Sequence[ViewLike], views_right: Sequence[ViewL
     L = _as_camera(left, "left")
     Rc = _as_camera(right, "right")
     _check_board(board_field)
+    rule = _rule(reject, reject_outliers, outlier_k, outlier_floor_px)
+    if isinstance(min_views, bool) or not isinstance(min_views, int | np.integer):
+        raise CalibrationError(f"min_views must be a whole number, got {min_views!r}")
     if min_views < 2:
         raise CalibrationError(f"min_views must be at least 2, got {min_views}")
     for name, vs in (("views_left", views_left), ("views_right", views_right)):
@@ -897,9 +1101,8 @@ def calibrate_stereo(views_left: Sequence[ViewLike], views_right: Sequence[ViewL
                 poses.setdefault(i, T)
         return out
 
-    rob = robust_fit(sorted(pairs), fit_views, view_errors, reject=reject_outliers,
-                      min_views=min_views, k=outlier_k, floor_px=outlier_floor_px,
-                      max_rounds=max_rounds)
+    rob = robust_fit(sorted(pairs), fit_views, view_errors, rule=rule,
+                      min_views=min_views, max_rounds=max_rounds)
     (K1, d1, K2, d2), T_right_left, poses = rob.state
     order = rob.active
     T_left_right = invert(T_right_left)
@@ -925,4 +1128,5 @@ def calibrate_stereo(views_left: Sequence[ViewLike], views_right: Sequence[ViewL
         epipolar_rms_px=float(np.sqrt(np.mean(epi ** 2))) if len(epi) else np.nan,
         epipolar_max_px=float(epi.max()) if len(epi) else np.nan, left=Lf, right=Rf,
         T_left_board=tuple(T_all), refined=bool(refine_intrinsics), rounds=rob.rounds,
-        n_corners=sum(len(pairs[i][0].ids) for i in order))
+        n_corners=sum(len(pairs[i][0].ids) for i in order), reject=str(rule),
+        limit_px=float(rob.limit), why=_reasons(rob, min_views, max_rounds))

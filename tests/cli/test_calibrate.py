@@ -225,3 +225,198 @@ def test_camera_from_images_refuses_too_few_views(stereo_views, tmp_path, capsys
                     "--json"])
     assert code == 2 and "view" in _json(capsys)["error"]
     assert not out.exists()
+
+
+# -- calibration targets users already have (issue 34) ---------------------------------------
+SAMPLE = ROOT / "tests" / "data" / "opencv_stereo_chessboard"
+SAMPLE_FIELDS = """\
+# OpenCV's stereo sample board: 9 x 6 inner corners; its square side is not published,
+# 25 mm is assumed (lengths, the baseline among them, scale with it)
+[fields.sample]
+family = "chessboard"
+inner_corners = [9, 6]
+square = 0.025
+"""
+
+
+def _opencv_corners(folder: Path, names: list[str], half: int = 5) -> list[np.ndarray]:
+    """OpenCV's own corners: findChessboardCorners (adaptive threshold, normalised image,
+    as its stereo_calib.cpp sample) and cornerSubPix over a ``half``-window. The sample's
+    own 11 px reaches the next corner on left02 and right02 (22 and 19 px apart) and puts
+    those views at 1.2 px RMS, moving fx by 3 px; 5 px keeps every view under 0.25 px."""
+    import cv2
+
+    out = []
+    for n in names:
+        img = cv2.imread(str(folder / n), cv2.IMREAD_GRAYSCALE)
+        ok, c = cv2.findChessboardCorners(
+            img, (9, 6), flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+        assert ok, n
+        out.append(cv2.cornerSubPix(img, c, (half, half), (-1, -1), (
+            cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)))
+    return out
+
+
+def _stock(left: list, right: list, size: tuple[int, int]) -> np.ndarray:
+    """Stock OpenCV on ``left``/``right`` corners: calibrateCamera for each camera, then
+    stereoCalibrate with the intrinsics fixed (the CLI's own sequence). Returns
+    fx, fy, cx, cy of left and of right, and the baseline (m)."""
+    import cv2
+
+    j = np.arange(54)
+    obj = np.c_[j % 9, j // 9, np.zeros(54)].astype(np.float32) * 0.025
+    objs = [obj] * len(left)
+    _, K1, d1, _, _ = cv2.calibrateCamera(objs, left, size, None, None)
+    _, K2, d2, _, _ = cv2.calibrateCamera(objs, right, size, None, None)
+    out = cv2.stereoCalibrate(objs, left, right, K1, d1, K2, d2, size,
+                              flags=cv2.CALIB_FIX_INTRINSIC)
+    T = out[6]
+    return np.r_[K1[0, 0], K1[1, 1], K1[0, 2], K1[1, 2], K2[0, 0], K2[1, 1], K2[0, 2],
+                 K2[1, 2], np.linalg.norm(T)]
+
+
+@pytest.fixture(scope="module")
+def opencv_reference() -> dict:
+    """Stock OpenCV on all 13 pairs of its sample, and its leave-one-pair-out spread: the
+    largest change of each figure when one pair is left out (~2 s)."""
+    import cv2
+
+    names = sorted(p.name for p in SAMPLE.glob("left*.jpg"))
+    left = _opencv_corners(SAMPLE, names)
+    right = _opencv_corners(SAMPLE, [n.replace("left", "right") for n in names])
+    size = cv2.imread(str(SAMPLE / names[0])).shape[1::-1]
+    full = _stock(left, right, size)
+    loo = np.array([_stock(left[:k] + left[k + 1:], right[:k] + right[k + 1:], size)
+                    for k in range(len(names))])
+    jack = np.sqrt((len(names) - 1) / len(names) * np.sum((loo - loo.mean(0)) ** 2, axis=0))
+    return {"names": names, "full": full, "spread": np.abs(loo - full).max(axis=0),
+            "jackknife": jack}
+
+
+FIGURES = ["left fx", "left fy", "left cx", "left cy", "right fx", "right fy", "right cx",
+           "right cy", "baseline"]
+
+
+def _sample_folders(tmp_path: Path) -> tuple[Path, Path, Path]:
+    """The sample's left and right images in folders of their own (a pair shares a name,
+    as `calibrate stereo` wants), and the fields file."""
+    lf, rf = tmp_path / "left", tmp_path / "right"
+    lf.mkdir()
+    rf.mkdir()
+    for p in sorted(SAMPLE.glob("left*.jpg")):
+        (lf / p.name.replace("left", "")).write_bytes(p.read_bytes())
+        (rf / p.name.replace("left", "")).write_bytes(
+            (SAMPLE / p.name.replace("left", "right")).read_bytes())
+    fields = tmp_path / "sample.toml"
+    fields.write_text(SAMPLE_FIELDS)
+    return lf, rf, fields
+
+
+def test_opencv_stereo_sample_calibrates_from_the_cli(opencv_reference, tmp_path, capsys):
+    """Issue 34 done-when: OpenCV's own stereo chessboard sample (left01..14, right01..14,
+    9 x 6 inner corners; 13 pairs) calibrates through `oralnav calibrate stereo` alone, and
+    every figure (each camera's fx, fy, cx, cy and the baseline) lies within the data's
+    own spread of stock OpenCV run on its own corners here (findChessboardCorners,
+    cornerSubPix, calibrateCamera, stereoCalibrate): within the largest change
+    leave-one-pair-out makes to OpenCV's figure. The per-view table lists all 13 views of
+    each camera, any dropped ones with why, as JSON and as text (none is dropped: every
+    view of this sample is under 0.25 px RMS with these corners)."""
+    lf, rf, fields = _sample_folders(tmp_path)
+    argv = ["calibrate", "stereo", "--left", str(lf), "--right", str(rf), "--fields",
+            str(fields), "--board", "sample"]
+    assert cli.run([*argv, "--json"]) == 0
+    doc = _json(capsys)
+    ours = []
+    for cam in ("left", "right"):
+        c = doc["intrinsics"][cam]
+        K = np.array(c["K"])
+        ours += [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+        assert len(c["views"]) == 13 and all(r["file"].endswith(".jpg") for r in c["views"])
+        for r in c["views"]:
+            assert (r["status"] == "dropped") == (r["view"] in c["rejected"])
+            if r["status"] == "dropped":
+                assert r["why"].startswith(f"{r['rms_px']:.3f} px > limit")
+    ours.append(doc["baseline_m"])
+    ref = opencv_reference
+    report = {f: (round(o, 4), round(r, 4), round(s, 4)) for f, o, r, s
+              in zip(FIGURES, ours, ref["full"], ref["spread"], strict=True)}
+    print("figure: (ours, OpenCV, leave-one-out spread)", report)
+    print("dropped:", {c: [doc["intrinsics"][c]["views"][i]["file"]
+                           for i in doc["intrinsics"][c]["rejected"]] for c in ("left", "right")},
+          "stereo:", doc["rejected"])
+    assert np.all(np.abs(np.array(ours) - ref["full"]) <= ref["spread"]), report
+    assert len(doc["views"]) == 13 and doc["reject"] == "mad:4,median:2,floor:0.25"
+    # the same in text: one row per image, the dropped ones marked with their reason
+    assert cli.run(argv) == 0
+    text = capsys.readouterr().out
+    for cam in ("left", "right"):
+        for i in doc["intrinsics"][cam]["rejected"]:
+            name = doc["intrinsics"][cam]["views"][i]["file"]
+            assert any(name in line and "dropped:" in line for line in text.splitlines())
+    assert text.count("outlier rule mad:4,median:2,floor:0.25") == 3
+
+
+def test_opencv_sample_one_camera_with_reject_none_is_stock_opencv(opencv_reference,
+                                                                   tmp_path, capsys):
+    """Issue 34 items 3-4: `oralnav calibrate camera` on the sample's left images alone;
+    with --reject none every view is used and fx, fy, cx, cy lie within OpenCV's
+    leave-one-out spread of stock OpenCV (the detectors differ, the solver does not);
+    --min-views 14 is more than the 13 images and is refused (exit 2, nothing written)."""
+    lf, _, fields = _sample_folders(tmp_path)
+    base = ["calibrate", "camera", "--images", str(lf), "--fields", str(fields), "--board",
+            "sample", "--json"]
+    assert cli.run([*base, "--reject", "none"]) == 0
+    doc = _json(capsys)
+    assert doc["rejected"] == [] and len(doc["used"]) == 13 and doc["limit_px"] is None
+    K = np.array(doc["K"])
+    ours = np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+    ref = opencv_reference
+    assert np.all(np.abs(ours - ref["full"][:4]) <= ref["spread"][:4]), (ours, ref["full"][:4])
+    out = tmp_path / "cam.toml"
+    assert cli.run([*base, "--min-views", "14", "--out", str(out), "--cell", "c"]) == 2
+    assert "need at least 14" in _json(capsys)["error"] and not out.exists()
+
+
+@pytest.mark.parametrize("rule,reason", [("median", "not a term NAME:VALUE"),
+                                         ("median:0.5", "expected a finite number >= 1")])
+def test_bad_reject_rule_on_the_cli(tmp_path, capsys, rule, reason):
+    """Issue 34 item 3 (bad input): a --reject rule that cannot be read exits 2 before
+    any image is read, the message naming the rule."""
+    code = cli.run(["calibrate", "camera", "--images", str(tmp_path / "none"), "--fields",
+                    str(tmp_path / "none.toml"), "--reject", rule, "--json"])
+    assert code == 2 and reason in _json(capsys)["error"]
+
+
+@pytest.mark.parametrize("out, fmt", [("rig.xml", None), ("ros", "ros"),
+                                      ("camchain.yaml", "kalibr")])
+def test_rig_out_writes_the_ecosystems_formats(tmp_path, capsys, out, fmt):
+    """Issue 34 item 2: `oralnav calibrate stereo --rig-out` writes OpenCV's FileStorage
+    (from the suffix), a ROS camera_info pair (a folder) or a Kalibr camchain (of a
+    `--model radtan` fit: Kalibr holds no k3), and the file loads back (``load_rig``, as
+    `--rig` reads it) to the rig the calibration found."""
+    from oralnav.config.rig import load_rig
+
+    lf, rf, fields = _sample_folders(tmp_path)
+    argv = ["calibrate", "stereo", "--left", str(lf), "--right", str(rf), "--fields",
+            str(fields), "--board", "sample", "--rig-out", str(tmp_path / out), "--json"]
+    extra = (["--rig-format", fmt] if fmt else []) + (["--model", "radtan"]
+                                                      if fmt == "kalibr" else [])
+    assert cli.run(argv + extra) == 0
+    doc = _json(capsys)
+    assert doc["rig_format"] == (fmt or "opencv")
+    rig = load_rig(tmp_path / out)
+    left, right = (rig[n] for n in rig.names)
+    np.testing.assert_allclose(left.K, doc["intrinsics"]["left"]["K"], rtol=1e-9)
+    np.testing.assert_allclose(right.K, doc["intrinsics"]["right"]["K"], rtol=1e-9)
+    assert np.linalg.norm(right.T_ref_cam[:3, 3]) == pytest.approx(doc["baseline_m"], rel=1e-6)
+
+
+def test_rig_out_of_an_unsaid_format_is_refused_before_calibrating(tmp_path, capsys):
+    """Bad input: a .yaml --rig-out without --rig-format (OpenCV, ROS and Kalibr all write
+    YAML) is refused at once, exit 2 naming the choices, and nothing is written."""
+    lf, rf, fields = _sample_folders(tmp_path)
+    code = cli.run(["calibrate", "stereo", "--left", str(lf), "--right", str(rf), "--fields",
+                    str(fields), "--board", "sample", "--rig-out", str(tmp_path / "rig.yaml"),
+                    "--out", str(tmp_path / "cal.toml"), "--cell", "c", "--json"])
+    assert code == 2 and "--rig-format toml|opencv|ros|kalibr" in _json(capsys)["error"]
+    assert not (tmp_path / "rig.yaml").exists() and not (tmp_path / "cal.toml").exists()

@@ -315,3 +315,176 @@ def test_missing_fields_file(tmp_path):
     with pytest.raises(ConfigError, match="file not found") as ei:
         load_fields(tmp_path / "nope.toml")
     assert "nope.toml" in str(ei.value)
+
+
+# -- calibration targets (issue 34) ----------------------------------------------------------
+TARGETS = """\
+[fields.cb]
+family = "chessboard"
+inner_corners = [9, 6]
+square = 0.025
+
+[fields.dots]
+family = "circles"
+grid = [7, 5]
+spacing = 0.03
+
+[fields.acircles]
+family = "asymmetric_circles"
+grid = [4, 11]
+spacing = 0.015
+
+[fields.grid]
+family = "aruco_grid"
+dictionary = "DICT_6X6_250"
+markers = [5, 7]
+marker = 0.04
+separation = 0.01
+first_id = 3
+"""
+
+OWN = """\
+[fields.own]
+family = "aruco_grid"
+dictionary_file = "{file}"
+markers = [5, 7]
+marker = 0.033
+separation = 0.0066
+"""
+
+
+def _dictionary_file(folder: Path, name: str = "gboriginal.yml", n: int = 40) -> Path:
+    """A custom dictionary written by OpenCV itself (writeDictionary), as users have them."""
+    import cv2
+
+    dic = cv2.aruco.extendDictionary(n, 5, randomSeed=3)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / name
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    dic.writeDictionary(fs)
+    fs.release()
+    return path
+
+
+def test_every_target_family_loads_for_calibration(tmp_path):
+    """Issue 34 item 1 (fields file): chessboard, circles, asymmetric_circles and
+    aruco_grid entries load as calibration targets with their sizes, point counts and
+    positions (metres); a ChArUco field in the same file stays the tracker's field."""
+    from oralnav.config.fields import load_targets
+    from oralnav.control.calibration.targets import ArucoGrid, Chessboard, CircleGrid
+
+    t = load_targets(_write(tmp_path, "t.toml", TARGETS + "\n" + SECOND.format(first_id=0)))
+    cb, dots, ac, grid = t["cb"], t["dots"], t["acircles"], t["grid"]
+    assert isinstance(cb, Chessboard) and cb.corner_count == 54
+    np.testing.assert_allclose(cb.corners[10], [0.025, 0.025, 0.0])
+    assert isinstance(dots, CircleGrid) and dots.family == "circles" and dots.corner_count == 35
+    assert isinstance(ac, CircleGrid) and ac.family == "asymmetric_circles"
+    np.testing.assert_allclose(ac.corners[5], [0.045, 0.015, 0.0])   # row 1, column 1
+    assert isinstance(grid, ArucoGrid) and grid.corner_count == 140
+    assert list(grid.board.getIds().ravel()[:2]) == [3, 4]
+    assert t["robot"].family == "charuco" and type(t["robot"]).__name__ == "MarkerField"
+
+
+def test_tracking_refuses_calibration_targets(tmp_path):
+    """Issue 34 item 1 (kept apart): loading a file for tracking that holds a calibration
+    target is one error at that entry's family key, saying the tracker follows charuco
+    fields; the tracker's own fields load as before."""
+    path = _write(tmp_path, "t.toml", SECOND.format(first_id=0) + "\n" + TARGETS)
+    _expect(path, "[fields.cb] family:", "calibration target only", "charuco")
+
+
+def test_custom_dictionary_file_loads_relative_to_the_fields_file(tmp_path, monkeypatch):
+    """Issue 34 item 2: an aruco_grid entry's dictionary_file, OpenCV's dictionary YAML as
+    writeDictionary writes it, named relative to the fields file, gives the board OpenCV's
+    readDictionary gives (same codes); tracking refuses such an entry at its key."""
+    import cv2
+
+    from oralnav.config.fields import load_targets
+
+    yml = _dictionary_file(tmp_path / "cal")
+    path = _write(tmp_path, "cal/f.toml", OWN.format(file="gboriginal.yml"))
+    monkeypatch.chdir(tmp_path)
+    grid = load_targets(path)["own"]
+    ref = cv2.aruco.Dictionary()
+    fs = cv2.FileStorage(str(yml), cv2.FILE_STORAGE_READ)
+    assert ref.readDictionary(fs.root())
+    np.testing.assert_array_equal(grid.board.getDictionary().bytesList, ref.bytesList)
+    assert grid.dictionary == "gboriginal.yml"
+    charuco = OWN.replace('"aruco_grid"', '"charuco"').replace(
+        "markers = [5, 7]", "squares = [9, 7]").replace("separation = 0.0066", "square = 0.045")
+    tracked = _write(tmp_path, "cal/c.toml", charuco.format(file="gboriginal.yml"))
+    board = load_targets(tracked)["own"]
+    assert board.family == "charuco" and board.corner_count == 48
+    _expect(path, "[fields.own] family:", "calibration target only")
+    _expect(tracked, "[fields.own] dictionary_file:", "calibration only")
+
+
+def _load_targets(path: Path):
+    from oralnav.config.fields import load_targets
+
+    return load_targets(path)
+
+
+_expect_target = partial(expect_config_error, _load_targets)
+
+
+@pytest.mark.parametrize("content,where,reason", [
+    (None, "[fields.own] dictionary_file:", "file not found"),
+    ("not: [a, dictionary\n", "[fields.own] dictionary_file:", "not an OpenCV dictionary"),
+    ("%YAML:1.0\n---\nmarkersize: 5\n", "nmarkers:", "missing"),
+    ("%YAML:1.0\n---\nnmarkers: 1\nmarkersize: 5\nmarker_0: \"0101\"\n", "marker_0:",
+     "a string of 25 bits"),
+    ("%YAML:1.0\n---\nnmarkers: 2\nmarkersize: 2\nmarker_0: \"0110\"\n", "marker_1:",
+     "a string of 4 bits"),
+    ("%YAML:1.0\n---\nnmarkers: 1\nmarkersize: 1.5\nmarker_0: \"0\"\n", "markersize:",
+     "whole number"),
+], ids=["missing", "not_yaml", "no_nmarkers", "short_marker", "missing_marker", "size"])
+def test_bad_dictionary_file_is_named(tmp_path, content, where, reason):
+    """Issue 34 item 2 (bad input): a missing or malformed dictionary file is one
+    ConfigError naming the fields file and its dictionary_file key, or the dictionary file
+    and its key, and what is wrong (OpenCV's own reader would take a short marker silently)."""
+    if content is not None:
+        _write(tmp_path, "own.yml", content)
+    path = _write(tmp_path, "f.toml", OWN.format(file="own.yml"))
+    with pytest.raises(ConfigError) as ei:
+        _load_targets(path)
+    msg = str(ei.value)
+    assert where in msg and reason in msg, msg
+    assert "own.yml" in msg and "\n" not in msg
+
+
+TARGET_BROKEN = {
+    # name: (file text, expected "[section] key" text, expected reason text)
+    "family": (TARGETS.replace('"chessboard"', '"chessbord"'), "[fields.cb] family:",
+               "'chessboard'"),
+    "missing_corners": (TARGETS.replace("inner_corners = [9, 6]\n", ""),
+                        "[fields.cb] inner_corners:", "Field required"),
+    "corners_too_few": (TARGETS.replace("[9, 6]", "[9, 2]"), "[fields.cb] inner_corners[1]:",
+                        "greater than or equal to 3"),
+    "foreign_key": (TARGETS.replace("square = 0.025\n", "square = 0.025\nmarker = 0.01\n", 1),
+                    "[fields.cb] marker:", "does not apply to a chessboard entry"),
+    "surface_on_target": (TARGETS.replace("spacing = 0.03\n",
+                                          'spacing = 0.03\nsurface = {kind = "plane"}\n'),
+                          "[fields.dots] surface:", "does not apply to a circles entry"),
+    "spacing_negative": (TARGETS.replace("spacing = 0.03", "spacing = -0.03"),
+                         "[fields.dots] spacing:", "greater than 0"),
+    "grid_no_dictionary": (TARGETS.replace('dictionary = "DICT_6X6_250"\n', ""),
+                           "[fields.grid] dictionary:", "Field required"),
+    "grid_both_dictionaries": (TARGETS.replace('dictionary = "DICT_6X6_250"\n',
+                                               'dictionary = "DICT_6X6_250"\n'
+                                               'dictionary_file = "x.yml"\n'),
+                               "[fields.grid] dictionary_file:", "not both"),
+    "grid_overflow": (TARGETS.replace("first_id = 3", "first_id = 220"),
+                      "[fields.grid] first_id:", "overflow DICT_6X6_250"),
+    "grid_one_marker": (TARGETS.replace("markers = [5, 7]", "markers = [1, 1]"),
+                        "[fields.grid] markers:", "at least 2 markers"),
+}
+
+
+@pytest.mark.parametrize("case", list(TARGET_BROKEN))
+def test_broken_target_entry_is_one_clear_error(tmp_path, case):
+    """Issue 34 item 1 (bad input): a malformed calibration-target entry (unknown family,
+    missing or foreign keys, bounds, dictionary problems) gives one ConfigError naming the
+    file, the section and key, and the reason."""
+    text, where, reason = TARGET_BROKEN[case]
+    _expect_target(_write(tmp_path, f"{case}.toml", text), where, reason)
