@@ -16,8 +16,11 @@ the half field of view (``axis`` uses the z axis with the ``cos`` weight).
 Parametrisation and covariance: the pose ``T_ref_field`` is updated as
 ``R <- Rot(dtheta) R``, ``t <- t + dt`` with ``[dt (m), dtheta (rad)]`` in the reference
 frame, so the 6x6 covariance is that of the field origin's position and of a rotation vector
-in the reference frame. It is ``s^2 (J^T W J)^-1`` at the solution, ``s^2`` the weighted
-residual variance (at least 0.05 px squared, so a lucky fit never looks perfect).
+in the reference frame. It is ``s^2 (J^T W J)^-1`` at the solution, with ``s^2`` the weighted
+residual variance pooled with a prior corner noise (a 4-corner tag has 2 residual degrees of
+freedom, too few to know its own noise); tag corners add a shift shared by every tag edge,
+which no residual shows; and a planar set seen by one camera adds its other, mirrored pose
+(issue 34 item 6; :func:`_covariance`, docs/tracking.md).
 """
 
 from __future__ import annotations
@@ -50,12 +53,54 @@ DEFAULT_WEIGHTING: Weighting = "cos2"
 
 #: Smallest residual standard deviation (px) used for the covariance.
 MIN_SIGMA_PX = 0.05
+#: Levenberg-Marquardt stop from IPPE's other pose to the other minimum of a planar set's
+#: fit: 30 steps, or a step under 1e-10 (rad, and m over the normalised plane).
+_AMBIGUITY_LM = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-10)
 #: Residuals above this many robust sigmas (and above ``MIN_OUTLIER_PX``) are outliers.
 OUTLIER_SIGMAS = 4.0
 MIN_OUTLIER_PX = 1.0
 #: A coplanar corner set whose image is thinner than this (width / length of its spread)
 #: is seen edge-on and refused (see ``_degenerate``).
 MIN_EDGE_ON_SPREAD = 0.06
+
+
+@dataclass(frozen=True)
+class CornerNoise:
+    """What a fit's covariance assumes of its corners' image errors (px, per image axis).
+
+    Attributes:
+        sigma_px: the independent error of one corner coordinate expected before the
+            fit's residuals are seen (the prior of :func:`pixel_variance`).
+        dof: how many residual degrees of freedom that prior is worth.
+        edge_sigma_px: standard deviation of a shift along their normals shared by every
+            tag edge in one image (0 for corners that are not tag corners). Such a shift
+            leaves no residual (a tag shrunk by it fits as a farther tag), so it adds to
+            the covariance whatever the fit's residuals.
+        small_side_px: tags whose image side is shorter than this (px) have corners
+            worse by ``small_side_px / side``: their shift grows by that factor and their
+            corner noise by its square (0: no such growth).
+
+    With ``edge_sigma_px`` or ``small_side_px`` set, rows ``4k .. 4k + 3`` of the model
+    are tag ``k``'s corners in detection order (round the tag).
+    """
+
+    sigma_px: float
+    dof: int = 4
+    edge_sigma_px: float = 0.0
+    small_side_px: float = 0.0
+
+    @property
+    def tags(self) -> bool:
+        """True for tag corners (the model's rows come four to a tag)."""
+        return self.edge_sigma_px > 0 or self.small_side_px > 0
+
+
+#: Chessboard corners of a marker field (saddle points refined by
+#: :func:`~oralnav.control.vision.detection.refine_corners`). Over 128 renders of 6-9 corner
+#: fields (2026-11-27, 640 x 480, 0.4-1.5 px blur, 1-3 DN noise, 0-50 deg tilt) their error
+#: against the truth was 0.05 px median, 0.03-0.05 px RMS in most views and up to 0.2 px in
+#: blurred, tilted ones; unlike a tag's corners they show no shared shift.
+FIELD_CORNERS = CornerNoise(sigma_px=0.05)
 
 
 @dataclass
@@ -325,9 +370,17 @@ def _residuals(T: np.ndarray, X: np.ndarray, obs_xy: np.ndarray, R_cr: np.ndarra
     J = np.empty((len(X), 2, 6))
     J[:, 0, :3] = A0
     J[:, 1, :3] = A1
-    J[:, 0, 3:] = np.cross(RX, A0)
-    J[:, 1, 3:] = np.cross(RX, A1)
+    _cross_into(RX, A0, J[:, 0, 3:])
+    _cross_into(RX, A1, J[:, 1, 3:])
     return r, J.reshape(-1, 6), z
+
+
+def _cross_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """Row-wise ``a x b`` (N x 3) written into ``out``: ``np.cross``'s axis handling costs
+    more than the product itself on the few rows of a tag."""
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
 
 
 def _stack(fld: CornerModel, obs: Sequence[Observation]):
@@ -345,8 +398,8 @@ def _stack(fld: CornerModel, obs: Sequence[Observation]):
 def bundle_adjust(fld: MarkerField | CornerModel, observations: Sequence[Observation],
                   T0: np.ndarray, weighting: Weighting = "none",
                   normals: np.ndarray | None = None, iterations: int = 12,
-                  reject_outliers: bool = True, method: str = "ba"
-                  ) -> PoseEstimate | None:
+                  reject_outliers: bool = True, method: str = "ba",
+                  noise: CornerNoise = FIELD_CORNERS) -> PoseEstimate | None:
     """Refine ``T0`` (``T_ref_field``) over every observation; eqs. 15-17.
 
     Weighted least squares on the normalised image plane (scaled by the focal length) with
@@ -355,6 +408,9 @@ def bundle_adjust(fld: MarkerField | CornerModel, observations: Sequence[Observa
     ``OUTLIER_SIGMAS`` robust sigmas are dropped once and the fit repeated. Returns None when
     fewer than 4 corners or a degenerate set remain. NVG-BA weights without ``normals``
     need a :class:`MarkerField` (its corner neighbourhoods); plain BA takes any model.
+    ``noise`` describes the corners for the covariance (:func:`_covariance`); a planar set
+    seen by one camera may come back in the other pose that fits it, when that one fits
+    better (:func:`_planar_ambiguity`).
     """
     obs = [o for o in observations if len(o.rows) > 0]
     if not obs:
@@ -386,20 +442,18 @@ def bundle_adjust(fld: MarkerField | CornerModel, observations: Sequence[Observa
         if not np.any(bad & keep):
             break
         keep &= ~bad
-    r, J, z = _residuals(T, X[keep], xy[keep], R_cr[keep], t_cr[keep], f[keep], True)
-    if np.any(z <= 0):
+    rows = np.concatenate([o.rows for o in obs])
+    args = (X[keep], xy[keep], R_cr[keep], t_cr[keep], f[keep])
+    found = _covariance(T, *args, w[keep], cam_idx[keep], rows[keep], noise)
+    if found is not None and found[0] is not T:
+        # the other planar pose fits better: polish it with this fit's own weights
+        polished = _solve(found[0], *args, w[keep], iterations)
+        if polished is not None:
+            found = _covariance(polished, *args, w[keep], cam_idx[keep], rows[keep], noise,
+                                may_swap=False) or found
+    if found is None:
         return None
-    wk = w[keep] / np.mean(w[keep])
-    w2 = np.repeat(wk, 2)
-    H = J.T @ (J * w2[:, None])
-    dof = max(len(r) - 6, 1)
-    s2 = max(float(np.sum(w2 * r * r)) / dof, MIN_SIGMA_PX ** 2)
-    try:
-        cov = s2 * np.linalg.inv(H)
-    except np.linalg.LinAlgError:
-        return None
-    if not np.all(np.isfinite(cov)):
-        return None
+    T, cov = found
     return _estimate(fld, obs, T, keep, cam_idx, cov, method)
 
 
@@ -452,6 +506,213 @@ def _estimate(fld: CornerModel, obs: Sequence[Observation], T: np.ndarray, keep:
                         cameras=tuple(per_camera), per_camera=per_camera, method=method)
 
 
+# -- covariance -----------------------------------------------------------------------------
+def pixel_variance(ssr: float, n_residuals: int, noise: CornerNoise = FIELD_CORNERS,
+                   prior_scale: float = 1.0) -> float:
+    """Variance (px^2) of one corner coordinate, the scale of a fit's covariance.
+
+    ``ssr`` is the weighted sum of squared residuals (px^2) of ``n_residuals`` image
+    coordinates fitted by the 6 pose parameters. Their own estimate ``ssr / (n - 6)`` is
+    pooled with the prior variance ``prior_scale * noise.sigma_px^2``, worth ``noise.dof``
+    residuals (the conjugate update of a Gaussian's variance), and the pooled value is
+    widened by ``nu / (nu - 2)`` for ``nu`` degrees of freedom in all: the pose error is
+    then Student-t, and that is its variance. A 4-corner tag (2 residual degrees of
+    freedom) thus leans on the prior, a 100-corner field on its residuals. Never below
+    ``MIN_SIGMA_PX`` squared.
+    """
+    nu = noise.dof + max(int(n_residuals) - 6, 0)
+    s2 = (noise.dof * prior_scale * noise.sigma_px ** 2 + max(float(ssr), 0.0)) / nu
+    return max(s2 * nu / (nu - 2), MIN_SIGMA_PX ** 2)
+
+
+def _covariance(T: np.ndarray, X: np.ndarray, xy: np.ndarray, R_cr: np.ndarray,
+                t_cr: np.ndarray, f: np.ndarray, w: np.ndarray, cam_idx: np.ndarray,
+                rows: np.ndarray, noise: CornerNoise, may_swap: bool = True
+                ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The pose and its 6x6 covariance of ``[dt (m), dtheta (rad)]`` (reference frame) for
+    the fit ``T`` to these stacked rows (as :func:`_residuals`; ``w`` per-row weights,
+    ``rows`` into the model).
+
+    ``s^2 (J^T W J)^-1`` with ``s^2`` from :func:`pixel_variance`; plus, for tag corners,
+    the shared edge shift (:func:`_tag_terms`); then, where one camera sees a planar set,
+    the other pose that fits it (:func:`_planar_ambiguity`), which replaces ``T`` when it
+    fits better and ``may_swap``. None when singular.
+    """
+    r, J, z = _residuals(T, X, xy, R_cr, t_cr, f, True)
+    if np.any(z <= 0):
+        return None
+    w2 = np.repeat(w / np.mean(w), 2)
+    ssr = float(np.sum(w2 * r * r))
+    prior_scale, shifts = _tag_terms(xy, f, cam_idx, rows, noise)
+    s2 = pixel_variance(ssr, len(r), noise, prior_scale)
+    try:
+        H_inv = np.linalg.inv(J.T @ (J * w2[:, None]))
+    except np.linalg.LinAlgError:
+        return None
+    cov = s2 * H_inv + _shift_covariance(shifts, J, w2, H_inv)
+    if not np.all(np.isfinite(cov)):
+        return None
+    if cam_idx.min() == cam_idx.max() and _coplanar(X):
+        return _planar_ambiguity(T, cov, ssr, s2, X, xy, R_cr, t_cr, f, w2, shifts,
+                                 may_swap)
+    return T, cov
+
+
+def _tag_terms(xy: np.ndarray, f: np.ndarray, cam_idx: np.ndarray, rows: np.ndarray,
+               noise: CornerNoise) -> tuple[float, list[np.ndarray]]:
+    """For tag corners (``noise.tags``): the factor on the prior corner variance, and per
+    camera the displacement (N x 2, px) of every row under the shared edge shift at one
+    standard deviation. ``(1.0, [])`` for other corners.
+
+    Sub-pixel refinement of a tag's corner (an L-shaped corner, unlike a chessboard's
+    saddle) pulls it into the tag as blur rounds the corner, by about the same amount at
+    every corner of every tag in one image: each edge moves along its normal, so each
+    corner moves along its bisector, farther at acute corners. The fit absorbs most of
+    that into depth, where no residual shows it. Displacements are found on the measured
+    quadrilaterals (``f * xy``, rows ``4k .. 4k + 3`` round tag ``k``); a tag of side ``L``
+    under ``noise.small_side_px`` shifts ``small_side_px / L`` times as far and adds that
+    ratio to the fourth power to the prior's mean variance factor.
+    """
+    if not noise.tags:
+        return 1.0, []
+    # tags: rows 4k .. 4k + 3 of one camera; a tag missing a corner has no closed outline
+    key = cam_idx.astype(np.int64) * (int(rows.max()) // 4 + 1) + rows // 4
+    n = len(rows)
+    if n % 4 == 0 and np.array_equal(rows.reshape(-1, 4) - rows[::4, None], _IN_ORDER) \
+            and not np.any(rows[::4] % 4) and np.array_equal(key[::4], key[3::4]):
+        idx = np.arange(n).reshape(-1, 4)  # four to a tag, in order (a body's rows)
+    else:
+        order = np.lexsort((rows % 4, key))
+        ks = key[order]
+        starts = np.nonzero(np.r_[True, ks[1:] != ks[:-1]])[0]
+        sizes = np.diff(np.r_[starts, len(ks)])
+        idx = order[(starts[sizes == 4][:, None] + np.arange(4)).ravel()].reshape(-1, 4)
+    if len(idx) == 0:
+        return 1.0, []
+    quads = f[idx, None] * xy[idx]                          # tags x 4 x 2, undistorted px
+    side = np.mean(np.linalg.norm(quads[:, _NEXT] - quads, axis=2), axis=1)
+    gain = np.maximum(1.0, noise.small_side_px / np.maximum(side, 1e-9))
+    prior_scale = float(np.mean(gain ** 4))
+    if noise.edge_sigma_px <= 0:
+        return prior_scale, []
+    moved = (noise.edge_sigma_px * gain)[:, None, None] * _corner_shift(quads)
+    shifts = []
+    tag_cam = cam_idx[idx[:, 0]]
+    for cam in np.unique(tag_cam):
+        v = np.zeros((n, 2))
+        mine = tag_cam == cam
+        v[idx[mine].ravel()] = moved[mine].reshape(-1, 2)
+        shifts.append(v)
+    return prior_scale, shifts
+
+
+def _shift_covariance(shifts: list[np.ndarray], J: np.ndarray, w2: np.ndarray,
+                      H_inv: np.ndarray) -> np.ndarray:
+    """Pose covariance (6x6) of independent row displacements at one standard deviation
+    each (:func:`_tag_terms`), through the weighted least-squares solution
+    ``H^-1 J^T W``."""
+    out = np.zeros((6, 6))
+    for v in shifts:
+        g = H_inv @ (J.T @ (w2 * v.ravel()))
+        out += np.outer(g, g)
+    return out
+
+
+_NEXT = np.array([1, 2, 3, 0])  # the next and the previous corner round a tag
+_PREV = np.array([3, 0, 1, 2])
+_IN_ORDER = np.arange(4)[None, :]
+
+
+def _corner_shift(quads: np.ndarray) -> np.ndarray:
+    """Displacement (T x 4 x 2) of each corner of ``quads`` (T x 4 x 2, corners in order
+    round each) when every edge moves 1 outward along its normal: the point 1 out from
+    both of its edges, ``(n1 + n2) / (1 + n1 . n2)`` for the outward unit normals of the
+    two (zero for a degenerate quadrilateral)."""
+    d = quads[:, _NEXT] - quads                             # edge k from corner k to k + 1
+    d /= np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-12)
+    # (dy, -dx) points out of a quadrilateral of positive shoelace area (image axes)
+    area = np.sum(quads[..., 0] * quads[:, _NEXT, 1] - quads[:, _NEXT, 0] * quads[..., 1],
+                  axis=1)
+    n = np.sign(area)[:, None, None] * np.stack([d[..., 1], -d[..., 0]], axis=2)
+    n1, n2 = n[:, _PREV], n                                 # corner k: edges k - 1 and k
+    den = 1.0 + np.sum(n1 * n2, axis=2, keepdims=True)
+    return np.where(den > 1e-9, (n1 + n2) / np.maximum(den, 1e-9), 0.0)
+
+
+def _coplanar(X: np.ndarray) -> bool:
+    """True for model points on one plane (the test of :func:`_degenerate`)."""
+    sv = _spread(X)
+    return bool(sv[2] < 1e-3 * sv[0])
+
+
+def _planar_ambiguity(T: np.ndarray, cov: np.ndarray, ssr: float, s2: float, X: np.ndarray,
+                      xy: np.ndarray, R_cr: np.ndarray, t_cr: np.ndarray, f: np.ndarray,
+                      w2: np.ndarray, shifts: list[np.ndarray], may_swap: bool = True
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The pose and covariance of a planar set seen by one camera, given the other pose
+    that fits it.
+
+    A plane seen by one camera fits two poses, mirror images about the line of sight;
+    when it is small in the image or seen nearly face-on both fit its corners to within
+    their noise (IPPE returns both). The other minimum is reached from IPPE's other pose by
+    Levenberg-Marquardt; ``shifts`` are the tag-edge displacements of the fit
+    (:func:`_tag_terms`). With ``p`` its posterior weight against ``T`` (Laplace: the
+    excess of its residuals over ``2 s2`` and its covariance volume), the covariance is
+    the second moment of the two-pose mixture about the reported pose:
+    ``(1 - p) cov + p (cov_alt + d d^T)``, ``d`` the step to the other pose. Where that
+    pose fits clearly worse, ``p`` vanishes and ``T, cov`` come back unchanged; where its
+    residuals are smaller (a fit that settled in the wrong minimum) and ``may_swap``, it
+    is the one reported.
+    """
+    R_cam = R_cr[0] @ T[:3, :3]
+    obj = np.ascontiguousarray(X, dtype=np.float64).reshape(-1, 1, 3)
+    img = np.ascontiguousarray(xy, dtype=np.float64).reshape(-1, 1, 2)
+    try:
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, np.eye(3), None,
+                                                 flags=cv2.SOLVEPNP_IPPE)
+    except cv2.error:
+        return T, cov
+    if n < 2:
+        return T, cov
+    # of IPPE's two poses, the one that turns farther from the fit (the smaller trace of
+    # the turn between them) seeds the other minimum, which OpenCV's Levenberg-Marquardt
+    # reaches on the same normalised coordinates (unweighted: the weights of one camera's
+    # planar set barely differ)
+    k = int(np.argmin([np.sum(cv2.Rodrigues(rv)[0] * R_cam) for rv in rvecs[:n]]))
+    try:
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, np.eye(3), None, rvecs[k].copy(),
+                                          tvecs[k].copy(), _AMBIGUITY_LM)
+    except cv2.error:
+        return T, cov
+    # T_ref_field of that pose: T_ref_cam @ T_cam_field, with T_ref_cam = inv(R_cr, t_cr)
+    T_alt = np.eye(4)
+    T_alt[:3, :3] = R_cr[0].T @ cv2.Rodrigues(rvec)[0]
+    T_alt[:3, 3] = R_cr[0].T @ (tvec.ravel() - t_cr[0])
+    r, J, z = _residuals(T_alt, X, xy, R_cr, t_cr, f, True)
+    if np.any(z <= 0) or not np.all(np.isfinite(r)):
+        return T, cov
+    try:
+        H_inv = np.linalg.inv(J.T @ (J * w2[:, None]))
+    except np.linalg.LinAlgError:
+        return T, cov
+    # both poses fit the same corners, so the same image quadrilaterals shift
+    cov_alt = s2 * H_inv + _shift_covariance(shifts, J, w2, H_inv)
+    ssr_alt = float(np.sum(w2 * r * r))
+    log_odds = (ssr - ssr_alt) / (2.0 * s2) + 0.5 * (np.linalg.slogdet(cov_alt)[1]
+                                                     - np.linalg.slogdet(cov)[1])
+    if not np.isfinite(log_odds):
+        return T, cov
+    if may_swap and ssr_alt < ssr:  # the other pose fits better: report it
+        T, T_alt, cov, cov_alt, log_odds = T_alt, T, cov_alt, cov, -log_odds
+    if log_odds < -40.0:  # the other pose is e^-40 as likely: nothing to add
+        return T, cov
+    p = 1.0 / (1.0 + np.exp(-min(log_odds, 40.0)))
+    d = np.concatenate([T_alt[:3, 3] - T[:3, 3],
+                        cv2.Rodrigues(T_alt[:3, :3] @ T[:3, :3].T)[0].ravel()])
+    out = (1.0 - p) * cov + p * (cov_alt + np.outer(d, d))
+    return (T, out) if np.all(np.isfinite(out)) else (T, cov)
+
+
 def estimate_pose(fld: MarkerField, observations: Sequence[Observation],
                   method: Literal["pnp", "ba", "nvgba"] = "nvgba",
                   weighting: Weighting = DEFAULT_WEIGHTING,
@@ -477,10 +738,11 @@ def estimate_pose(fld: MarkerField, observations: Sequence[Observation],
     raise ValueError(f"unknown method {method!r}; expected 'pnp', 'ba' or 'nvgba'")
 
 
-def pose_covariance(fld: CornerModel, observations: Sequence[Observation], T: np.ndarray
-                    ) -> np.ndarray | None:
+def pose_covariance(fld: CornerModel, observations: Sequence[Observation], T: np.ndarray,
+                    noise: CornerNoise = FIELD_CORNERS) -> np.ndarray | None:
     """6x6 covariance of ``[dt, dtheta]`` (reference frame) of an unweighted fit at ``T``,
-    for poses found by other means (the OpenCV baseline); None when singular."""
+    for poses found by other means (the OpenCV baseline): that of :func:`bundle_adjust`,
+    about ``T`` even where the other planar pose fits better; None when singular."""
     obs = [o for o in observations if len(o.rows) > 0]
     if not obs:
         return None
@@ -488,10 +750,9 @@ def pose_covariance(fld: CornerModel, observations: Sequence[Observation], T: np
     ok = np.all(np.isfinite(xy), axis=1)
     if ok.sum() < 4:
         return None
-    r, J, _ = _residuals(T, X[ok], xy[ok], R_cr[ok], t_cr[ok], f[ok], True)
-    s2 = max(float(r @ r) / max(len(r) - 6, 1), MIN_SIGMA_PX ** 2)
-    try:
-        cov = s2 * np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
+    rows = np.concatenate([o.rows for o in obs])
+    found = _covariance(T, X[ok], xy[ok], R_cr[ok], t_cr[ok], f[ok], np.ones(int(ok.sum())),
+                        cam_idx[ok], rows[ok], noise, may_swap=False)
+    if found is None:
         return None
-    return cov if np.all(np.isfinite(cov)) else None
+    return found[1]

@@ -45,7 +45,7 @@ from oralnav.control.errors import MarkerFieldError
 from oralnav.control.geometry import invert, make_transform, transform_points
 from oralnav.control.vision.camera import CameraModel, Rig
 from oralnav.control.vision.markers import aruco_dictionary
-from oralnav.control.vision.pose import Observation, PoseEstimate, bundle_adjust
+from oralnav.control.vision.pose import CornerNoise, Observation, PoseEstimate, bundle_adjust
 
 #: Pose of OpenCV's single-marker frame (y up, z toward the camera) in the frame of a
 #: :func:`single_tag_body` tag (y down, z away): a half turn about x.
@@ -58,6 +58,18 @@ MIN_TAG_SIDE = 1e-5
 MIN_TAG_AREA_RATIO = 0.05
 #: A detected tag whose image quadrilateral covers less than this (px^2) is not used.
 MIN_IMAGE_AREA_PX2 = 1.0
+
+#: Tag corners from :func:`detect_tags` (sub-pixel refined L-shaped corners), for the
+#: covariance (:class:`~.pose.CornerNoise`). Measured on 113 rendered tags (2026-11-27;
+#: 640 x 480, 600 px focal, 25-110 px sides, 0-55 deg tilt, 1-3 DN noise): refinement
+#: pulls every edge of a tag into it, by 0.12 px at 0.3-0.7 px of blur, 0.18 px at
+#: 0.7-1.1, 0.29 px at 1.1-1.5 and 0.42 px at 1.5-2 (spread 0.05-0.17 px), and beyond
+#: that shift each corner coordinate is off by 0.05-0.12 px RMS on tags over 60 px
+#: across; under 45 px both grow, to 0.64 px of shift and 0.4 px of scatter at 1.1-1.5 px
+#: of blur. The AprilTag refinement has no such shift but 0.45 px of scatter. The values
+#: below (0.1 px, a 0.2 px shift, growing under 50 px) are those of 0.4-1.5 px of blur,
+#: set on 150 random renders and checked on 300 others (docs/tracking.md).
+TAG_CORNERS = CornerNoise(sigma_px=0.1, dof=4, edge_sigma_px=0.2, small_side_px=50.0)
 
 # Levenberg-Marquardt stop: the pose changes by less than ~1e-12 (rad, m) or 100 steps.
 _LM_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
@@ -628,7 +640,7 @@ def estimate_body(body: RigidBody, detections: Mapping[str, TagCorners], rig: Ri
         obs.append(Observation(cam, rows, np.concatenate([mine[t] for t in ids])))
         used.update(ids)
     est = bundle_adjust(_BodyPoints(body.corners()), obs, T0, "none",
-                        reject_outliers=False, method="aruco")
+                        reject_outliers=False, method="aruco", noise=TAG_CORNERS)
     if est is None:
         return None
     seen = sorted(set().union(*(set(m) for m in seen_px.values())))

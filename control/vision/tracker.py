@@ -95,8 +95,9 @@ class TrackerSettings:
         body_max_rms_px: a rigid body's estimate whose reprojection RMS exceeds this is not
             reported (the peer's real bodies fit to 0.6-1.1 px: printed-tag model errors).
         body_max_position_sigma_mm, body_max_rotation_sigma_deg: the covariance gate for
-            bodies. Looser than the fields': one 50 mm tag at 210 mm has up to 1.9 mm and
-            2.9 deg (peer output.avi), the peer's 12-tag reference 0.9 mm and 0.4 deg.
+            bodies. Looser than the fields': one 50 mm tag at 210 mm reports 0.7-1.5 mm and
+            0.5-2.0 deg (peer output.avi, the covariance of ``pose.pixel_variance`` with the
+            tags' corner noise), the peer's 12-tag reference 0.9 mm and 0.4 deg.
         body_max_tag_error_px, body_max_tag_error_rel: a body's tag agrees with the others
             when its RMS reprojection error is at most the larger of these (px, fraction of
             its side in pixels); see :func:`.rigid_body.estimate_body_pose`.

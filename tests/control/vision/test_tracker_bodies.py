@@ -126,7 +126,9 @@ def test_one_camera_off_the_reference(rig, plate_images):
 def test_covariance_follows_the_geometry(rig, plate_images):
     """tracker bodies: the covariance comes from the final fit, so it tells good geometry
     from poor: two cameras pin the position better than one, and one 15 mm tag alone is
-    far looser in rotation than six."""
+    far looser in rotation than six (over twice: the tag-edge shift of issue 34 item 6
+    loosens the one-camera plate's rotation too, to 0.29 deg against its 0.20 deg error,
+    where the residuals alone gave 0.14 deg)."""
     tag = RigidBody("tag", "DICT_ARUCO_ORIGINAL", {11: _square((0.0, 0.0, 0.0), 0.015)})
     tr = Tracker(rig, [], bodies=[_plate()])
     both = tr.track(plate_images)
@@ -140,7 +142,7 @@ def test_covariance_follows_the_geometry(rig, plate_images):
         return float(np.sqrt(np.max(np.linalg.eigvalsh(est.covariance[3:, 3:]))))
 
     assert both["plate"].position_sigma_m < 0.8 * right["plate"].position_sigma_m
-    assert rot_sigma(right["tag"]) > 3 * rot_sigma(right["plate"])
+    assert rot_sigma(right["tag"]) > 2 * rot_sigma(right["plate"])
     dt, dr = _err(both["tag"], T_REF_PLATE)  # tag 11 sits at the plate's origin
     assert dt < 1.0 and dr < 3.0, (dt, dr)
 
