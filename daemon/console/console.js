@@ -100,6 +100,7 @@ function signOut(why) {
     if (v.bitmap) v.bitmap.close();
   }
   S.views.clear();
+  dirty.clear();
   $("views").replaceChildren();
   $("main").hidden = true;
   $("signout").hidden = true;
@@ -313,9 +314,12 @@ function viewCard(name) {
   canvas.setAttribute("aria-label", `camera ${name}`);
   const label = document.createElement("figcaption");
   label.className = "label";
+  // the label's parts, written only when they change (no layout work per frame beyond that)
+  const parts = [text("b", name), text("span", ""), text("span", ""), text("span", "", "fields")];
+  label.append(...parts);
   card.append(canvas, label);
   $("views").append(card);
-  v = { card, canvas, label, counter: -1, shownMeta: null, bitmap: null, busy: false,
+  v = { card, canvas, label, parts, counter: -1, shownMeta: null, bitmap: null, busy: false,
         pending: null };
   S.views.set(name, v);
   // a new card changes the layout: frames at the width the views now have
@@ -332,13 +336,8 @@ async function showFrame(v, { head, jpeg }) {
     v.bitmap = bitmap;
     v.counter = head.counter;
     v.shownMeta = head;  // the overlay found in this very frame
-    drawView(v);
-    v.card.dataset.counter = String(head.counter);
+    repaint(v);
     S.shown += 1;
-    const fields = head.fields.map((f) => `${f.name} (${f.corners})`).join(", ");
-    v.label.replaceChildren(text("b", head.camera), text("span", `#${head.counter}`),
-                            text("span", `${head.width}x${head.height}`),
-                            text("span", fields || "no field", "fields"));
   } finally {
     v.busy = false;
   }
@@ -353,6 +352,28 @@ async function showFrame(v, { head, jpeg }) {
     v.pending = null;
     showFrame(v, next);
   }
+}
+
+// The frames of one round arrive within a few milliseconds of each other: they are painted
+// together at the next animation frame, so the page is composited once a round, not once
+// a view (measured: Chromium's CPU per round, docs/console.md).
+const dirty = new Set();
+
+function repaint(v) {
+  if (!dirty.size) requestAnimationFrame(paintDirty);
+  dirty.add(v);
+}
+
+function paintDirty() {
+  for (const v of dirty) {
+    drawView(v);
+    const head = v.shownMeta;
+    v.card.dataset.counter = String(head.counter);
+    const fields = head.fields.map((f) => `${f.name} (${f.corners})`).join(", ") || "no field";
+    const words = [`#${head.counter}`, `${head.width}x${head.height}`, fields];
+    words.forEach((w, i) => { if (v.parts[i + 1].textContent !== w) v.parts[i + 1].textContent = w; });
+  }
+  dirty.clear();
 }
 
 function text(tag, content, cls) {
