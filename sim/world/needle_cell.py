@@ -86,11 +86,22 @@ class WristPose:
 
 def _shaft_frame(s: np.ndarray) -> np.ndarray:
     """A rotation whose ``z`` is the unit vector ``s`` (its roll about ``s`` arbitrary:
-    the roll joint takes it up)."""
-    a = np.array([1.0, 0.0, 0.0]) if abs(s[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(a, s)
+    the roll joint takes it up).
+
+    The cross products are written out: planners call this hundreds of thousands of
+    times a trial, and ``np.cross`` on one 3-vector cost 80 us of axis bookkeeping (the
+    needle procedure's port choice spent a quarter of its time there). The arithmetic is
+    ``np.cross``'s own, operation for operation, so the frames are the same to the bit."""
+    s0, s1, s2 = float(s[0]), float(s[1]), float(s[2])
+    if abs(s0) < 0.9:   # a = x: a x s = (0, -s2, s1)
+        x = np.array([0.0 * s2 - 0.0 * s1, 0.0 * s0 - 1.0 * s2, 1.0 * s1 - 0.0 * s0])
+    else:               # a = y: a x s = (s2, 0, -s0)
+        x = np.array([1.0 * s2 - 0.0 * s1, 0.0 * s0 - 0.0 * s2, 0.0 * s1 - 1.0 * s0])
     x /= np.linalg.norm(x)
-    return np.column_stack([x, np.cross(s, x), s])
+    x0, x1, x2 = float(x[0]), float(x[1]), float(x[2])
+    return np.array([[x0, s1 * x2 - s2 * x1, s0],
+                     [x1, s2 * x0 - s0 * x2, s1],
+                     [x2, s0 * x1 - s1 * x0, s2]])
 
 
 @dataclass(frozen=True, eq=False)
