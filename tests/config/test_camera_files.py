@@ -32,6 +32,8 @@ from .helpers import expect_config_error, write_file
 
 DATA = Path(__file__).resolve().parent / "data" / "camera_files"
 ROS_PAIR = DATA / "ros_stereo"
+#: the same pair written by ROS's own C++ writer (camera_calibration_parsers; README there)
+ROS_PARSERS_PAIR = DATA / "ros_parsers_stereo"
 KALIBR = DATA / "kalibr-camchain.yaml"
 
 # The rig the fixtures in data/camera_files hold (see the README there): 1280 x 1024 px,
@@ -203,6 +205,8 @@ def test_opencv_ros_and_kalibr_files_of_one_rig_load_the_same(tmp_path):
     assert_same_rig(from_ros, load_ros([ROS_PAIR / "left.yaml", ROS_PAIR / "right.yaml"],
                                        names=names))
     assert_same_rig(from_kalibr, load_rig(KALIBR, names=names))
+    # written by ROS's own library (writeCalibrationYml): full precision, flow-style lists
+    assert_same_rig(truth, load_rig(ROS_PARSERS_PAIR, names=names), tol_r=3e-8, tol_t=1e-8)
 
 
 def test_camera_names_come_from_the_files():
