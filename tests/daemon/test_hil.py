@@ -25,17 +25,14 @@ pytestmark = pytest.mark.skipif(GI_MISSING is not None, reason=str(GI_MISSING))
 RUN_LIMIT_S = 300.0
 
 
-def test_the_main_job_reaches_every_target_on_the_hardware_in_the_loop_cell(
-        tmp_path: Path) -> None:
-    """The hardware-peer demo registers the four suture targets, runs the approach, the
-    intra-oral adjustment and the targets, and ends READY with each TRE <= 0.1 mm against
-    the peers' truth; its JSON carries the capture-to-command latency with its delivery
-    and tracking stages, and the tracking rate."""
+def _demo(folder: Path) -> dict:
+    """The peers with rendered cameras started in ``folder``, the demo run on their
+    configuration, the peers stopped; the run's record (``bench.busy_demo.run_once``)."""
     from oralnav.cli.peers import HardwarePeers
     from oralnav.sim.peers.gige_fake import NoLoopbackAddress
 
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-    peers = HardwarePeers(tmp_path / "cell", ur_host=f"127.84.{os.getpid() % 250}.9",
+    peers = HardwarePeers(folder / "cell", ur_host=f"127.84.{os.getpid() % 250}.9",
                           cameras="rendered")
     try:
         peers.__enter__()
@@ -44,14 +41,39 @@ def test_the_main_job_reaches_every_target_on_the_hardware_in_the_loop_cell(
     try:
         assert peers.rendered is not None, "the rendered cameras did not start"
         assert set(peers.rendered.addresses) == {"left", "right", "endoscope"}
-        rec = run_once(tmp_path / "run", [
+        rec = run_once(folder / "run", [
             sys.executable, "-m", "oralnav.daemon.main", "--config",
             str(peers.write_config()), "--demo", "--json", "--api-port", str(free_port())],
             timeout=RUN_LIMIT_S)
     finally:
         peers.__exit__(None, None, None)
-    log = (tmp_path / "run" / "stderr.txt").read_text()[-3000:]
-    assert rec["passed"], f"{rec.get('why')}\n{log}"
+    rec["log"] = (folder / "run" / "stderr.txt").read_text()[-3000:]
+    return rec
+
+
+def _camera_stalls_only(rec: dict) -> bool:
+    """Whether a failed run stopped on camera stalls alone: the renderer (three 2-Mpixel
+    views in the peers' process) starved of the 2 cores by the rest of the suite, an
+    environmental stop the daemon is right to take (docs/navigation.md)."""
+    why = rec.get("why")
+    return (not rec["passed"] and isinstance(why, list) and bool(why)
+            and all(str(e.get("source", "")).startswith("camera_stall:") for e in why))
+
+
+def test_the_main_job_reaches_every_target_on_the_hardware_in_the_loop_cell(
+        tmp_path: Path) -> None:
+    """The hardware-peer demo registers the four suture targets, runs the approach, the
+    intra-oral adjustment and the targets, and ends READY with each TRE <= 0.1 mm against
+    the peers' truth; its JSON carries the capture-to-command latency with its delivery
+    and tracking stages, and the tracking rate. A run stopped by camera stalls alone (the
+    renderer starved by the rest of the suite on 2 cores) is run again, once; any other
+    stop fails at once."""
+    rec = _demo(tmp_path / "first")
+    if _camera_stalls_only(rec):  # once, and only for this environmental stop
+        logging.getLogger(__name__).warning("HIL demo stopped on camera stalls (renderer "
+                                            "starved); run again once: %s", rec["why"])
+        rec = _demo(tmp_path / "second")
+    assert rec["passed"], f"{rec.get('why')}\n{rec['log']}"
     assert rec["state"] == "READY"
     tre = rec["tre_mm"]
     assert set(tre) == {"stitch_1", "stitch_2", "stitch_3", "stitch_4"}, tre
