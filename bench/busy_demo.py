@@ -104,6 +104,7 @@ def run_once(folder: Path, command: Sequence[str], timeout: float = RUN_TIMEOUT_
     rec["passed"] = done.returncode == 0 and rec["done"]
     if not rec["passed"]:
         rec["why"] = demo.get("error") or str(demo.get("reasons")) or f"exit {done.returncode}"
+        rec["reasons"] = demo.get("reasons")  # the stop's reasons as the daemon gave them
     return rec
 
 

@@ -68,7 +68,10 @@ async def test_a_stopped_control_process_faults_within_its_limit_and_recovers(ce
         assert proc.alive  # alive, yet seen as hung
         ok, why = core.health()
         assert not ok and "silent" in why
-        assert ask_health(core.health) == (False, why)  # the systemd watchdog withholds pings
+        # the systemd watchdog withholds pings (the reason names the silence so far, which
+        # has grown by the time it is asked again: compare its words, not its number)
+        ok, asked = ask_health(core.health)
+        assert not ok and asked.startswith("control loop silent for "), asked
         assert int(proc.cmd.read()["stop_count"]) == stops_before + 1
         assert int(proc.nav.read()["mode"]) == HOLD
         assert hb.last_trip is not None and hb.last_trip["quiet_s"] > limit

@@ -55,9 +55,10 @@ def _camera_stalls_only(rec: dict) -> bool:
     """Whether a failed run stopped on camera stalls alone: the renderer (three 2-Mpixel
     views in the peers' process) starved of the 2 cores by the rest of the suite, an
     environmental stop the daemon is right to take (docs/navigation.md)."""
-    why = rec.get("why")
-    return (not rec["passed"] and isinstance(why, list) and bool(why)
-            and all(str(e.get("source", "")).startswith("camera_stall:") for e in why))
+    reasons = rec.get("reasons")
+    return (not rec["passed"] and isinstance(reasons, list) and bool(reasons)
+            and all(isinstance(e, dict) and str(e.get("source", "")).startswith("camera_stall:")
+                    for e in reasons))
 
 
 def test_the_main_job_reaches_every_target_on_the_hardware_in_the_loop_cell(
@@ -82,3 +83,14 @@ def test_the_main_job_reaches_every_target_on_the_hardware_in_the_loop_cell(
     assert 0 < lat["p50"] <= lat["p99"]
     assert set(lat["stages"]) == {"delivery", "tracking"}
     assert rec["tracking_hz"] > 0
+
+
+def test_only_a_stop_on_camera_stalls_alone_is_run_again():
+    """The retry's rule: camera stalls alone (the renderer starved) qualify; any other
+    reason among them, a passed run, or a run without the daemon's reasons do not."""
+    stall = {"kind": "fault", "source": "camera_stall:left"}
+    other = {"kind": "fault", "source": "deadline:misses"}
+    assert _camera_stalls_only({"passed": False, "reasons": [stall, dict(stall)]})
+    assert not _camera_stalls_only({"passed": False, "reasons": [stall, other]})
+    assert not _camera_stalls_only({"passed": True, "reasons": [stall]})
+    assert not _camera_stalls_only({"passed": False, "why": "no JSON result on stdout"})
