@@ -70,6 +70,11 @@ class _Subscription:
     frame_width: int = int(FRAMES_DEFAULT["width"])
     frame_quality: int = int(FRAMES_DEFAULT["quality"])
 
+    def take(self, other: _Subscription) -> None:
+        """Become ``other``: a client's new subscription replaces its last, in place (the
+        frame push reads this object)."""
+        self.__dict__.update(other.__dict__)
+
 
 def _frame_options(opts: Any) -> tuple[dict[str, float] | None, str | None]:
     """The ``"frames"`` options ``{"fps": f, "width": w, "quality": q}`` (each optional)
@@ -160,7 +165,6 @@ async def stream(ws: WebSocket, ops: TelemetrySource, period: float,
     with what it subscribed to (:data:`TOPICS`; a refused message is answered
     ``{"error": ...}`` and changes nothing)."""
     sub = _Subscription()
-    topics = sub.topics
     sent_frames: dict[str, int] = {}  # views: the counters this client was last sent
     async with anyio.create_task_group() as tg:
         async def watch() -> None:
@@ -173,10 +177,7 @@ async def stream(ws: WebSocket, ops: TelemetrySource, period: float,
                 if wanted is None:
                     await ws.send_text(json.dumps({"error": why}))
                 else:
-                    topics.clear()
-                    topics.update(wanted.topics)
-                    sub.frame_period, sub.frame_width, sub.frame_quality = (
-                        wanted.frame_period, wanted.frame_width, wanted.frame_quality)
+                    sub.take(wanted)
             tg.cancel_scope.cancel()
 
         tg.start_soon(watch)
@@ -189,13 +190,13 @@ async def stream(ws: WebSocket, ops: TelemetrySource, period: float,
                 try:
                     doc = ops.telemetry()
                     now = anyio.current_time()
-                    if "status" in topics and (now - last_status >= STATUS_PERIOD_S
+                    if "status" in sub.topics and (now - last_status >= STATUS_PERIOD_S
                                                or doc.get("state") != last_state):
                         doc = {**doc, "status": ops.status()}
                         last_status, last_state = now, doc.get("state")
-                    if "poses" in topics:
+                    if "poses" in sub.topics:
                         doc = {**doc, "poses": ops.poses()}
-                    if "views" in topics and views is not None:
+                    if "views" in sub.topics and views is not None:
                         frames = views.counters()
                         if frames != sent_frames:
                             doc = {**doc, "views": views.cameras()}

@@ -6,8 +6,6 @@ engine that cannot be used is refused saying what to do."""
 from __future__ import annotations
 
 import sys
-import threading
-import time
 
 import pytest
 
@@ -19,23 +17,9 @@ distributed = pytest.importorskip("distributed", reason="Dask is the extra oraln
 
 SEEDS = list(range(100, 112))
 #: threads Dask keeps for the whole process once used (its offload pool, its event loop
-#: thread, the watchers of the worker processes it starts, which go with the cluster)
-DASK_THREADS = ("Dask-", "IO loop", "AsyncProcess Dask", "QueueFeederThread")
-
-
-@pytest.fixture(autouse=True)
-def no_leaked_threads():
-    """The suite's check (tests/conftest.py), but for Dask's own long-lived threads."""
-    before = set(threading.enumerate())
-    yield
-    deadline = time.monotonic() + 1.0
-    while True:
-        leaked = [t.name for t in threading.enumerate() if t not in before and t.is_alive()
-                  and not t.name.startswith(DASK_THREADS)]
-        if not leaked or time.monotonic() > deadline:
-            break
-        time.sleep(0.01)
-    assert not leaked, f"test left threads running: {leaked}"
+#: thread, the watchers of the worker processes it starts, which go with the cluster):
+#: the suite's leaked-thread check (tests/conftest.py) lets these be
+LONG_LIVED_THREADS = ("Dask-", "IO loop", "AsyncProcess Dask", "QueueFeederThread")
 
 
 @pytest.fixture(scope="module")

@@ -230,6 +230,22 @@ def _report(name: str, tr: Trials) -> str:
     return "\n".join(lines)
 
 
+def _assert_covers(what: str, tr, mahalanobis_95: float) -> str:
+    """The coverage both kinds of trial must show: at least 200 poses; each translation and
+    rotation component within 1 sigma in 55-85 % of them and within 2 sigma in >= 90 %;
+    the 6-DOF Mahalanobis distance within chi-square's 95 % point in ``mahalanobis_95`` of
+    them. Returns the report (printed too)."""
+    msg = _report(what, tr)
+    print(msg)
+    assert len(tr.errors) >= 200, msg
+    t1, r1 = tr.coverage(1.0)
+    t2, r2 = tr.coverage(2.0)
+    assert 0.55 <= t1 <= 0.85 and 0.55 <= r1 <= 0.85, msg
+    assert t2 >= 0.90 and r2 >= 0.90, msg
+    assert np.mean(tr.mahalanobis() <= CHI2_2S) >= mahalanobis_95, msg
+    return msg
+
+
 def test_single_tag_sigma_covers_its_error(tag_trials):
     """Issue 34 item 6 (single tags): over >= 200 renders of one tag at 4 distances, 3
     tilts and 3 blurs, each translation and rotation component of the true error lies
@@ -241,14 +257,7 @@ def test_single_tag_sigma_covers_its_error(tag_trials):
     2 sigma (a tag's edges all sit inside their true lines, which shows in depth and in no
     residual)."""
     tr = tag_trials
-    msg = _report("single tag", tr)
-    print(msg)
-    assert len(tr.errors) >= 200, msg
-    t1, r1 = tr.coverage(1.0)
-    t2, r2 = tr.coverage(2.0)
-    assert 0.55 <= t1 <= 0.85 and 0.55 <= r1 <= 0.85, msg
-    assert t2 >= 0.90 and r2 >= 0.90, msg
-    assert np.mean(tr.mahalanobis() <= CHI2_2S) >= 0.88, msg
+    msg = _assert_covers("single tag", tr, mahalanobis_95=0.88)
     old_t2, _ = tr.coverage(2.0, old=True)
     assert old_t2 < 0.2, msg
     assert np.mean(tr.mahalanobis(old=True) <= CHI2_2S) < 0.2, msg
@@ -263,14 +272,7 @@ def test_small_field_sigma_covers_its_error(field_trials):
     better. Before issue 34 some were, each with a covariance that put the truth beyond
     chi-square's 99.9 % point."""
     tr = field_trials
-    msg = _report("small field", tr)
-    print(msg)
-    assert len(tr.errors) >= 200, msg
-    t1, r1 = tr.coverage(1.0)
-    t2, r2 = tr.coverage(2.0)
-    assert 0.55 <= t1 <= 0.85 and 0.55 <= r1 <= 0.85, msg
-    assert t2 >= 0.90 and r2 >= 0.90, msg
-    assert np.mean(tr.mahalanobis() <= CHI2_2S) >= 0.90, msg
+    msg = _assert_covers("small field", tr, mahalanobis_95=0.90)
     assert tr.worst_rotation_deg() < 10.0, msg
     # before: mirrored poses, each reported as if sure (beyond chi-square's 99.9 % point)
     mirrored = np.degrees(np.linalg.norm(tr.old_errors[:, 3:], axis=1)) > 10.0
