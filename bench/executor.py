@@ -50,6 +50,20 @@ def _dask() -> Any:
     return distributed
 
 
+def require_dask() -> None:
+    """Raise :class:`SchedulerError` saying what to install when Dask is missing."""
+    _dask()
+
+
+def oralnav_build() -> str:
+    """This process's oralnav: its version and commit. Workers must all run the same one,
+    since a trial's result is a function of the code as much as of its seed."""
+    from oralnav import __version__
+    from oralnav.bench.machine import commit
+
+    return f"{__version__} ({commit()})"
+
+
 class TrialRunner:
     """Runs trials on the engine named by ``scheduler`` (module docstring) with
     ``workers`` processes where it starts them (default one per CPU). A context manager:
@@ -83,6 +97,19 @@ class TrialRunner:
                                      "with `dask scheduler` and workers with `dask worker "
                                      "ADDRESS`") from None
             self.workers = len(self._client.scheduler_info().get("workers", {}))
+            self._check_builds()
+
+    def _check_builds(self) -> None:
+        """Refuse a cluster whose workers run another oralnav than this process."""
+        mine = oralnav_build()
+        theirs = self._client.run(oralnav_build)
+        other = {addr: b for addr, b in theirs.items() if b != mine}
+        if other:
+            self.close()
+            listed = ", ".join(f"{a} runs {b}" for a, b in sorted(other.items()))
+            raise SchedulerError(f"the cluster at {self.scheduler!r} has workers with another "
+                                 f"oralnav: {listed}; this process runs {mine}. Install the "
+                                 "same commit on every worker and restart them")
 
     @property
     def name(self) -> str:

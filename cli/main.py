@@ -24,6 +24,8 @@
     oralnav bench console --out DIR [--seconds S] [--fps F] [--rounds N] [--json]
     oralnav bench hil --out DIR [--runs N] [--camera-latency S] [--camera-clock-offset S]
     oralnav bench igtl --out DIR [--seconds S] [--json]
+    oralnav report --out DIR [--quick] [--force] [--only KEY ...] [--scheduler ADDRESS]
+                                                             (cli/report.py)
 
 Every ``--json`` prints exactly one JSON object on stdout; progress and logs go to stderr.
 Exit status: 0 done, 2 bad input (the message names the file and key), 1 anything else.
@@ -44,7 +46,7 @@ from typing import Any
 import cv2
 
 from oralnav import __version__
-from oralnav.cli import calibrate, examples, plan, replay, temporal
+from oralnav.cli import calibrate, examples, plan, replay, report, temporal
 from oralnav.cli.extras import missing_extra, require_bench_extra
 from oralnav.cli.sheets import SheetError, render_sheet, write_png
 from oralnav.config.daemon import load_config
@@ -672,6 +674,7 @@ def build_parser() -> argparse.ArgumentParser:
     calibrate.add_parser(sub)
     plan.add_parser(sub)
     replay.add_parser(sub)
+    report.add_parser(sub)
 
     bn = sub.add_parser("bench", help="benchmarks").add_subparsers(dest="cmd", required=True)
     nv = bn.add_parser("navigation", help="speed/accuracy charts of the tracker (minutes)")
