@@ -364,14 +364,15 @@ def _chart_fig11(ctx: Context, key: str, per: list[dict[str, Any]], frames: int)
 
 # -- Table II -----------------------------------------------------------------------------
 def table2(ctx: Context) -> Section:
-    from oralnav.config.cell import load_cell_config
+    from oralnav.bench.executor import TrialRunner
 
     key = "000/table2"
     trials = _sizes(ctx)["table2_trials"]
-    cfg = load_cell_config(calibration._cell_file())
     n, px = calibration.DEFAULT_SAMPLES, calibration.REALISTIC_PX
-    ctx.say(f"{trials} chain calibrations and TREs at {n} samples, {px} px")
-    point = calibration.run_point(cfg, n, px, trials, seed=2)
+    with TrialRunner(ctx.scheduler, ctx.workers) as runner:
+        ctx.say(f"{trials} chain calibrations and TREs at {n} samples, {px} px on "
+                f"{runner.name}")
+        point = calibration.run_point(n, px, trials, seed=2, runner=runner)
     tre = point["tre_mm"]
     minority = point["failed"] > trials / 2
     rows = [Row("TRE of the whole chain, median of trials", "mm", PAPER_TRE_MM,
