@@ -218,11 +218,11 @@ def _load(seconds: float, tracking: _Tracking | None, on_frame) -> float | None:
 
 
 def charts(doc: dict[str, Any], out: Path) -> list[str]:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from oralnav.bench.report.charts import legend_outside
+    from oralnav.bench.report.charts import plt as pyplot
 
-    fig, ax = plt.subplots(figsize=(8, 4.5))
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(9, 4.5), layout="constrained")
     for key, r in doc["runs"].items():
         h = np.array(r["hist"], dtype=float)
         edges = np.arange(len(h) + 1) * r["hist_bin_ms"]
@@ -234,8 +234,7 @@ def charts(doc: dict[str, Any], out: Path) -> list[str]:
     ax.set_xlabel("|period - nominal| (ms); last bin: beyond 5 ms")
     ax.set_ylabel("fraction of periods")
     ax.set_title(f"control loop at {doc['rate_hz']:g} Hz on {doc['machine']['cpus']} cores")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
+    legend_outside(ax)  # the tails the chart is for sit where an inside legend would go
     fig.savefig(out / "control_loop.png", dpi=110)
     plt.close(fig)
     return ["control_loop.png"]

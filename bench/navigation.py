@@ -238,68 +238,114 @@ def _single_field_scene(base: Scene, fld: MarkerField, T: np.ndarray, **imaging)
                    imaging=replace(base.imaging, **imaging), rods=(), blots=())
 
 
-def sweeps(frames: int) -> dict[str, Any]:
+#: The stability sweeps: each nuisance's values in order of growing nuisance (the unit is
+#: in the name; the cylinder's radius shrinks as the nuisance grows).
+SWEEPS: dict[str, tuple[float, ...]] = {
+    "view_angle_deg": (0, 30, 50, 60, 70, 75, 80),
+    "cylinder_radius_mm": (30, 20, 12, 10, 8, 6),
+    "read_noise_dn": (0, 2, 4, 8, 12, 16),
+    "blur_sigma_px": (0.5, 1.0, 2.0, 3.0, 4.0),
+    "occluded_fraction": (0.0, 0.2, 0.4, 0.6, 0.8)}
+
+
+def sweep_scene(sweep: str, value: float) -> Scene:
+    """The one-field scene of sweep ``sweep`` (a key of :data:`SWEEPS`) at ``value``: the
+    robot's sheet turned ``value`` deg from the cameras, an opener-style 8 x 6 sheet on a
+    cylinder of radius ``value`` mm, the robot's sheet face-on with read noise ``value``
+    DN or lens blur ``value`` px, or with a stain over ``value`` of its area."""
     base = cell_scene()
-    opener = base.placement("opener").field
     robot = base.placement("robot").field
     T_front = transform_from_euler([0.0, 0.0, 0.22], [0, 0, 0])
-    plans: dict[str, list[tuple[float, Scene]]] = {}
-    plans["view_angle_deg"] = [
-        (a, _single_field_scene(base, robot, transform_from_euler(
-            [-0.025, -0.0175, 0.22], [0, a, 0])))
-        for a in (0, 30, 50, 60, 70, 75, 80)]
-    plans["cylinder_radius_mm"] = []
-    for r_mm in (30, 20, 12, 10, 8, 6):
+    T_face = T_front @ make_transform(t=[-0.025, -0.0175, 0])
+    if sweep == "view_angle_deg":
+        return _single_field_scene(base, robot, transform_from_euler(
+            [-0.025, -0.0175, 0.22], [0, value, 0]))
+    if sweep == "cylinder_radius_mm":
+        opener = base.placement("opener").field
         f = MarkerField("target", opener.dictionary, (8, 6), 0.003, 0.0022, opener.first_id,
-                        CylinderSurface(r_mm * 1e-3))
-        plans["cylinder_radius_mm"].append(
-            (r_mm, _single_field_scene(base, f, transform_from_euler(
-                [-0.012, -0.009, 0.20], [0, 0, 0]))))
-    plans["read_noise_dn"] = [(n, _single_field_scene(base, robot, T_front @ make_transform(
-        t=[-0.025, -0.0175, 0]), read_noise_dn=n)) for n in (0, 2, 4, 8, 12, 16)]
-    plans["blur_sigma_px"] = [(b, _single_field_scene(base, robot, T_front @ make_transform(
-        t=[-0.025, -0.0175, 0]), blur_sigma_px=b)) for b in (0.5, 1.0, 2.0, 3.0, 4.0)]
-    plans["occluded_fraction"] = []
-    w, h = robot.sheet_size
-    for frac in (0.0, 0.2, 0.4, 0.6, 0.8):
-        sc = _single_field_scene(base, robot, T_front @ make_transform(t=[-0.025, -0.0175, 0]))
-        if frac > 0:
-            rad = float(np.sqrt(frac * w * h / np.pi))
+                        CylinderSurface(value * 1e-3))
+        return _single_field_scene(base, f, transform_from_euler([-0.012, -0.009, 0.20],
+                                                                 [0, 0, 0]))
+    if sweep == "read_noise_dn":
+        return _single_field_scene(base, robot, T_face, read_noise_dn=value)
+    if sweep == "blur_sigma_px":
+        return _single_field_scene(base, robot, T_face, blur_sigma_px=value)
+    if sweep == "occluded_fraction":
+        sc = _single_field_scene(base, robot, T_face)
+        if value > 0:
+            w, h = robot.sheet_size
+            rad = float(np.sqrt(value * w * h / np.pi))
             sc = replace(sc, blots=(Blot("stain", "target", (0.5 * w, 0.5 * h), rad),))
-        plans["occluded_fraction"].append((frac, sc))
+        return sc
+    raise ValueError(f"unknown sweep {sweep!r}; have {list(SWEEPS)}")
+
+
+def sweep_point(item: tuple[str, float, int]) -> dict[str, Any]:
+    """One point of a sweep, ``(sweep, value, frames)``: every method on the same
+    ``frames`` renders of :func:`sweep_scene`; per method its detection rate (share of
+    frames with a pose) and median errors (mm, deg; ``None`` without a pose). A pure
+    function of its item, so it runs on any engine of ``bench/executor.py``."""
+    sweep, value, frames = item
+    scene = sweep_scene(sweep, value)
+    renderer = SceneRenderer(scene)
+    renderer.prepare()
+    imgs = [renderer.render(frame=k) for k in range(frames)]
+    fld = scene.placements[0].field
+    row: dict[str, Any] = {"value": value}
+    for method in METHODS:
+        tr = Tracker(scene.rig, [fld], method=method, mode="full")
+        errs = []
+        for f in imgs:
+            est = tr.track(f.images)
+            if fld.name in est:  # estimates by field name, truth by placement
+                te, re = pose_error(est[fld.name].T_ref_field, f.T_ref_field["target"])
+                errs.append((te * 1e3, np.degrees(re)))
+        e = np.array(errs) if errs else np.zeros((0, 2))
+        row[method] = {"detection_rate": len(errs) / frames,
+                       "median_mm": float(np.median(e[:, 0])) if len(e) else None,
+                       "median_deg": float(np.median(e[:, 1])) if len(e) else None}
+    return row
+
+
+def _broken(r: dict[str, Any]) -> bool:
+    """A method's figures at a point break it: a frame without pose, or an error over
+    ``BREAK_MM``."""
+    return r["detection_rate"] < 1.0 or (r["median_mm"] or 0) > BREAK_MM
+
+
+def sweeps(frames: int, scheduler: str | None = None, workers: int | None = None,
+           values: dict[str, tuple[float, ...]] | None = None) -> dict[str, Any]:
+    """The stability sweeps (``values``, default :data:`SWEEPS`), ``frames`` frames a
+    point, each point a trial on the engine ``scheduler`` names (``bench/executor.py``;
+    default a local process pool of ``workers``). Per sweep its rows and, per method,
+    ``breaks_at`` (the first value that breaks it, ``None`` if none does) and
+    ``holds_to`` (the last value before that; the sweep's end if it never breaks,
+    ``None`` if it breaks at the first)."""
+    from oralnav.bench.executor import TrialRunner
+
+    values = SWEEPS if values is None else values
+    items = [(sweep, v, frames) for sweep, vs in values.items() for v in vs]
+
+    def said(i: int, row: dict[str, Any], done: int, total: int) -> None:
+        sweep = items[i][0]
+        _log(f"  {sweep} {row['value']} ({done}/{total}): " + ", ".join(
+            f"{m} {row[m]['detection_rate']:.0%}"
+            + (f" {row[m]['median_mm']:.3f} mm" if row[m]["median_mm"] is not None else "")
+            for m in METHODS))
+
+    with TrialRunner(scheduler, workers) as runner:
+        _log(f"sweeps: {len(items)} points of {frames} frames on {runner.name}")
+        results = runner.map(sweep_point, items, on_result=said)
     out: dict[str, Any] = {"frames": frames, "break_mm": BREAK_MM}
-    for sweep, items in plans.items():
-        _log(f"sweep {sweep}: {[v for v, _ in items]}")
-        rows = []
-        for value, scene in items:
-            renderer = SceneRenderer(scene)
-            renderer.prepare()
-            imgs = [renderer.render(frame=k) for k in range(frames)]
-            fld = scene.placements[0].field
-            row: dict[str, Any] = {"value": value}
-            for method in METHODS:
-                tr = Tracker(scene.rig, [fld], method=method, mode="full")
-                errs = []
-                for f in imgs:
-                    est = tr.track(f.images)
-                    if fld.name in est:  # estimates by field name, truth by placement
-                        te, re = pose_error(est[fld.name].T_ref_field, f.T_ref_field["target"])
-                        errs.append((te * 1e3, np.degrees(re)))
-                e = np.array(errs) if errs else np.zeros((0, 2))
-                row[method] = {"detection_rate": len(errs) / frames,
-                               "median_mm": float(np.median(e[:, 0])) if len(e) else None,
-                               "median_deg": float(np.median(e[:, 1])) if len(e) else None}
-            rows.append(row)
-            _log(f"  {value}: " + ", ".join(
-                f"{m} {row[m]['detection_rate']:.0%}"
-                + (f" {row[m]['median_mm']:.3f} mm" if row[m]['median_mm'] is not None else "")
-                for m in METHODS))
-        breaks = {}
+    for sweep in values:
+        rows = [r for (s, _, _), r in zip(items, results, strict=True) if s == sweep]
+        breaks, holds = {}, {}
         for m in METHODS:
-            bad = [r["value"] for r in rows
-                   if r[m]["detection_rate"] < 1.0 or (r[m]["median_mm"] or 0) > BREAK_MM]
-            breaks[m] = bad[0] if bad else None
-        out[sweep] = {"rows": rows, "breaks_at": breaks}
+            bad = [k for k, r in enumerate(rows) if _broken(r[m])]
+            breaks[m] = rows[bad[0]]["value"] if bad else None
+            last = (bad[0] if bad else len(rows)) - 1
+            holds[m] = rows[last]["value"] if last >= 0 else None
+        out[sweep] = {"rows": rows, "breaks_at": breaks, "holds_to": holds}
     return out
 
 
@@ -350,18 +396,21 @@ def charts(doc: dict[str, Any], out: Path) -> list[str]:
     written.append("time_breakdown.png")
 
     t1 = doc["table_one"]
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
-    for ax, label in zip(axes, ("good", "bad"), strict=True):
+    # one quantity per axis: translation (mm) on the top row, rotation (deg) below
+    fig, axes = plt.subplots(2, 2, figsize=(12, 6.5), layout="constrained")
+    for col, label in enumerate(("good", "bad")):
         var = t1[label]["variants"]
         names = list(var)
-        x = np.arange(4)
+        w = 0.8 / len(names)
         for i, n in enumerate(names):
-            vals = list(var[n]["std_mm"]) + [var[n]["std_deg"]]
-            ax.bar(x + i * 0.8 / len(names), vals, width=0.8 / len(names), label=n)
-        ax.set_xticks(x + 0.4 - 0.4 / len(names), ["X mm", "Y mm", "Z mm", "Rot deg"])
-        ax.set_title(f"{label} opener pose: STD over {t1['frames']} frames")
-        ax.legend(fontsize=7)
-    fig.tight_layout()
+            axes[0, col].bar(np.arange(3) + i * w, var[n]["std_mm"], width=w, label=n)
+            axes[1, col].bar([i * w], [var[n]["std_deg"]], width=w, label=n)
+        axes[0, col].set_xticks(np.arange(3) + 0.4 - w / 2, ["X", "Y", "Z"])
+        axes[0, col].set_ylabel("translation STD (mm)")
+        axes[0, col].set_title(f"{label} opener pose: STD over {t1['frames']} frames")
+        axes[1, col].set_xticks([i * w for i in range(len(names))], names, rotation=25)
+        axes[1, col].set_ylabel("rotation STD (deg)")
+    axes[0, 1].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     fig.savefig(out / "table_one.png", dpi=110)
     plt.close(fig)
     written.append("table_one.png")
@@ -429,13 +478,33 @@ def main(out: Path, quick: bool = False) -> dict[str, Any]:
         "bad_pose_std_reduction": doc["table_one"]["bad"].get("std_reduction"),
         "bad_pose_std_reduction_target": 0.30,
     }
+    doc["verdicts"] = verdicts(doc["targets"])
     doc["charts"] = charts(doc, out)
     doc["elapsed_s"] = time.perf_counter() - t0
     (out / "navigation.json").write_text(json.dumps(doc, indent=1, default=_jsonable) + "\n")
     _log("targets: " + json.dumps(doc["targets"], default=_jsonable))
+    for name, v in doc["verdicts"].items():
+        _log(f"  {name}: {v}")
     _log(f"wrote {out / 'navigation.json'} and {', '.join(doc['charts'])} "
          f"in {doc['elapsed_s']:.0f} s")
     return doc
+
+
+def verdicts(t: dict[str, Any]) -> dict[str, str]:
+    """Each of issue 3's targets marked from what the run measured (report/section.py's
+    rules: a missing figure is ``not measured``, never met)."""
+    from oralnav.bench.report.section import Row, Target
+
+    cut = t["bad_pose_std_reduction"]
+    rows = [Row("steady_pair_ms", "ms", None, t["steady_pair_ms"],
+                Target("<=", t["steady_pair_ms_target"], "issue 3")),
+            Row("acquisition_pair_ms", "ms", None, t["acquisition_pair_ms"],
+                Target("<=", t["acquisition_pair_ms_target"], "issue 3")),
+            Row("speedup_over_opencv", "x", None, t["speedup_over_opencv"],
+                Target(">=", t["speedup_target"], "issue 3")),
+            Row("bad_pose_std_reduction", "share", None, cut and cut["xyz"],
+                Target(">=", t["bad_pose_std_reduction_target"], "issue 3"))]
+    return {r.figure: r.verdict for r in rows}
 
 
 def _jsonable(o: Any) -> Any:
