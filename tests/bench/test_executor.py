@@ -69,3 +69,27 @@ def test_an_engine_that_cannot_be_used_is_refused_clearly(monkeypatch):
         TrialRunner("tcp://127.0.0.1:9", connect_timeout=1.0)
     with pytest.raises(ValueError, match="at least 1"):
         TrialRunner(workers=0)
+
+
+def build_seen_from_worker_thread() -> str:
+    """Stands in for ``oralnav_build``: a worker thread reports another build than the
+    main thread (as a worker host with another checkout would)."""
+    import threading
+
+    return ("0.1.0 (aaaa)" if threading.current_thread() is threading.main_thread()
+            else "0.0.9 (bbbb)")
+
+
+def test_a_worker_of_another_build_is_refused(monkeypatch):
+    """Issue 35, bad input: a cluster whose worker runs another oralnav is refused, the
+    message naming both builds (trials of other code would not be the same trials)."""
+    from oralnav.bench import executor
+
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as lc:
+        monkeypatch.setattr(executor, "oralnav_build", build_seen_from_worker_thread)
+        with pytest.raises(SchedulerError, match=r"0\.0\.9 \(bbbb\).*0\.1\.0 \(aaaa\)"):
+            TrialRunner(lc.scheduler_address)
+        monkeypatch.undo()
+        with TrialRunner(lc.scheduler_address) as same:  # the same build is accepted
+            assert same.workers == 1
