@@ -57,11 +57,8 @@ def _path(T0: np.ndarray, T1: np.ndarray, n: int | None = None) -> list[np.ndarr
         dist = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
         n = max(8, math.ceil(dist / _PATH_STEP), math.ceil(turn / _PATH_TURN))
     f = np.arange(1, n + 1) / n
-    R = Slerp([0.0, 1.0], rots)(f).as_matrix()
-    out = []
-    for k in range(n):
-        T = np.eye(4)
-        T[:3, :3] = R[k]
-        T[:3, 3] = T0[:3, 3] + f[k] * (T1[:3, 3] - T0[:3, 3])
-        out.append(T)
-    return out
+    T = np.zeros((n, 4, 4))
+    T[:, :3, :3] = Slerp([0.0, 1.0], rots)(f).as_matrix()
+    T[:, :3, 3] = T0[:3, 3] + f[:, None] * (T1[:3, 3] - T0[:3, 3])
+    T[:, 3, 3] = 1.0
+    return list(T)
