@@ -70,7 +70,7 @@ class TrialRunner:
     leaving it stops what it started (never a cluster it only connected to)."""
 
     def __init__(self, scheduler: str | None = None, workers: int | None = None, *,
-                 connect_timeout: float = CONNECT_TIMEOUT_S) -> None:
+                 connect_timeout: float | None = None) -> None:
         if workers is not None and workers < 1:
             raise ValueError(f"workers must be at least 1, got {workers}")
         self.scheduler = scheduler
@@ -89,6 +89,7 @@ class TrialRunner:
                 silence_logs=logging.WARNING)
             self._client = distributed.Client(self._cluster)
         else:
+            connect_timeout = connect_timeout or CONNECT_TIMEOUT_S
             try:
                 self._client = distributed.Client(scheduler, timeout=connect_timeout)
             except (OSError, TimeoutError) as exc:
