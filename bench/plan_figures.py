@@ -15,6 +15,10 @@ from oralnav.control.planning import polar_curve as pc
 from oralnav.control.planning.fpsm import FPSM
 from oralnav.control.planning.placement import Placement, PlacementProblem
 
+#: The objective's unit by equation: the paper's distances are in mm, and eq. 14 sums
+#: their signed square roots, eq. 21 the distances, eq. 22 their signed squares.
+OBJECTIVE_UNITS = {14: "mm^0.5", 21: "mm", 22: "mm^2"}
+
 
 def _figure():
     import matplotlib
@@ -37,35 +41,57 @@ def _save(fig, path: Path) -> Path:
 def slice_fits(model: FPSM, boundaries: np.ndarray, path: Path,
                title: str = "FPSM slices") -> Path:
     """Each slice's fitted curve (blue) over the tissue boundary seen from its origin (red),
-    in millimetres. ``boundaries`` (M, R): boundary radii on R rays."""
+    in millimetres, every panel on the same x and y scale (mm, ticks on the outer panels)
+    and one legend for all. ``boundaries`` (M, R): boundary radii on R rays."""
     plt = _figure()
+    from matplotlib.lines import Line2D
+
     m = model.slices
     cols = min(5, m)
     rows = math.ceil(m / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 2.6 * rows), squeeze=False)
+    # shared axes: the slices compare at a glance, and the outer ticks give the scale
+    fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 2.6 * rows), squeeze=False,
+                             sharex=True, sharey=True)
     th = np.linspace(0, 2 * math.pi, boundaries.shape[1], endpoint=False)
     thc = np.linspace(0, 2 * math.pi, 721)
     for j in range(rows * cols):
         ax = axes[j // cols][j % cols]
-        ax.set_axis_off()
         if j >= m:
+            ax.set_axis_off()
             continue
         rb = boundaries[j] * 1e3
         rc = pc.evaluate(model.rho[j], thc) * 1e3
-        ax.plot(rb * np.cos(th), rb * np.sin(th), ".", ms=1.0, color="tab:red")
-        ax.plot(rc * np.cos(thc), rc * np.sin(thc), "-", lw=1.0, color="tab:blue")
-        ax.plot(0, 0, "+", color="k")
+        ax.plot(rb * np.cos(th), rb * np.sin(th), ".", ms=1.0, color="tab:red",
+                label="tissue boundary (rays from the slice origin)")
+        ax.plot(rc * np.cos(thc), rc * np.sin(thc), "-", lw=1.0, color="tab:blue",
+                label="fitted curve (FPSM)")
+        ax.plot(0, 0, "+", color="k", label="slice origin")
         ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.25)
         ax.set_title(f"z = {model.z[j] * 1e3:.1f} mm", fontsize=8)
-    fig.suptitle(title)
+        if j % cols == 0:
+            ax.set_ylabel("y (mm)", fontsize=8)
+        if j + cols >= m:         # the lowest panel of its column
+            ax.set_xlabel("x (mm)", fontsize=8)
+            ax.xaxis.set_tick_params(labelbottom=True)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    # one legend above the panels, where it covers none of them; the boundary's dots are
+    # drawn larger there than in the panels, to be seen
+    handles[0] = Line2D([], [], ls="none", marker=".", ms=6, color="tab:red")
+    fig.legend(handles, labels, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=3,
+               fontsize=8, frameon=False)
+    fig.suptitle(title, y=1.06)
+    fig.tight_layout()
     out = _save(fig, path)
     plt.close(fig)
     return out
 
 
 def objective_contour(problem: PlacementProblem, placement: Placement | None, path: Path,
-                      n: int = 161) -> Path:
-    """The objective over the search box, with the PSO's answer marked."""
+                      n: int = 161, title: str | None = None) -> Path:
+    """The objective over the search box (``n`` x ``n`` cells), with the PSO's answer
+    marked; d_T in mm, theta_T in degrees, the colour bar in the objective's unit."""
     plt = _figure()
     d, th, F = problem.grid(n, n)
     fig, ax = plt.subplots(figsize=(6.4, 4.8))
@@ -75,7 +101,9 @@ def objective_contour(problem: PlacementProblem, placement: Placement | None, pa
     hi = max(hi, lo + 1e-9)
     cs = ax.contourf(d * 1e3, np.degrees(th), np.clip(F, lo, hi),
                      levels=np.linspace(lo, hi, 41), cmap="viridis")
-    fig.colorbar(cs, ax=ax, label=f"objective (eq. {problem.s.equation})")
+    fig.colorbar(cs, ax=ax, label=f"objective, eq. {problem.s.equation} "
+                 f"({OBJECTIVE_UNITS[problem.s.equation]})\nsmaller is safer; the top "
+                 "colour: 75th percentile and above")
     k = np.unravel_index(np.argmin(F), F.shape)
     ax.plot(d[k[1]] * 1e3, math.degrees(th[k[0]]), "wx", ms=9, label="grid minimum")
     if placement is not None:
@@ -83,7 +111,12 @@ def objective_contour(problem: PlacementProblem, placement: Placement | None, pa
                 label="PSO")
     ax.set_xlabel("d_T (mm)")
     ax.set_ylabel("theta_T (deg)")
-    ax.legend(loc="upper right", fontsize=8)
+    if title:
+        ax.set_title(title, fontsize=10)
+    # below the axes, clear of the contours and of the colour bar
+    # (grey, so the white grid-minimum mark shows)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, fontsize=8,
+              facecolor="0.75")
     out = _save(fig, path)
     plt.close(fig)
     return out

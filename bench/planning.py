@@ -55,7 +55,7 @@ import os
 import platform
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from importlib import resources
 from pathlib import Path
@@ -152,17 +152,22 @@ def _stats(x: Any) -> dict[str, float] | None:
 
 # -- 1. Table 1: one slice, N = 3..20 ---------------------------------------------------
 
-def table1(mesh: Any, quick: bool) -> dict[str, Any]:
-    """Each variant of :data:`FITS` on each slice of :data:`TABLE1_SLICES`, N = 3..20."""
+def table1(mesh: Any, quick: bool, *, points: Sequence[int] = range(3, 21),
+           fits: dict[str, FitSettings] | None = None, repeats: int | None = None,
+           say: Callable[[str], None] = _say) -> dict[str, Any]:
+    """Each variant of ``fits`` (default :data:`FITS`) on each slice of
+    :data:`TABLE1_SLICES` for each N of ``points`` (the paper's 3..20); each time (s) the
+    median of ``repeats`` fits (default 1 when ``quick``, else 5)."""
+    fits = FITS if fits is None else fits
     names = [n for n, _ in TABLE1_SLICES]
     z = np.array([zz for _, zz in TABLE1_SLICES])
     segs = cut_segments(mesh, z)
     samp = slice_boundaries(mesh, z, SAMPLES, segments=segs)
     dense = slice_boundaries(mesh, z, DENSE_RAYS, segments=segs)
-    repeats = 1 if quick else 5
+    repeats = (1 if quick else 5) if repeats is None else repeats
     rows, summary = [], []
-    for n in range(3, 21):
-        for method, s in FITS.items():
+    for n in points:
+        for method, s in fits.items():
             rho = np.empty((z.size, n))
             secs = np.empty(z.size)
             for j in range(z.size):
@@ -189,14 +194,14 @@ def table1(mesh: Any, quick: bool) -> dict[str, Any]:
                             "paper_coverage": PAPER_TABLE1[n][0] / 100.0,
                             "paper_time_s": PAPER_TABLE1[n][1]})
         line = "; ".join(f"{r['method']} {r['coverage_mean']:.1%} {r['time_s_per_slice'] * 1e3:.0f}"
-                         f" ms" for r in summary[-len(FITS):])
-        _say(f"table 1, N = {n:2d}: {line} (paper {PAPER_TABLE1[n][0]:.1f} %, "
-             f"{PAPER_TABLE1[n][1]:.2f} s)")
+                         f" ms" for r in summary[-len(fits):])
+        say(f"table 1, N = {n:2d}: {line} (paper {PAPER_TABLE1[n][0]:.1f} %, "
+            f"{PAPER_TABLE1[n][1]:.2f} s)")
     return {"slices": [{"name": a, "z_mm": b * 1e3} for a, b in TABLE1_SLICES],
             "samples": SAMPLES, "repeats": repeats,
             "settings": {k: {"method": v.method, "paper_lambda": v.paper_lambda,
                              "paper_alpha_mm": v.paper_alpha_mm,
-                             "paper_iterations": v.paper_iterations} for k, v in FITS.items()},
+                             "paper_iterations": v.paper_iterations} for k, v in fits.items()},
             "rows": rows, "summary": summary,
             "_plot": {"z": z, "dense": dense, "samp": samp}}
 
@@ -274,12 +279,22 @@ def _chart_table1(doc: dict[str, Any], out: Path) -> list[Path]:
 
 # -- 2. the full model ------------------------------------------------------------------
 
-def full_model(mesh: Any, quick: bool, out: Path) -> dict[str, Any]:
-    """:func:`build_fpsm` at each size of :data:`BUILD_SIZES` by each method."""
-    repeats = 1 if quick else 3
+def full_model(mesh: Any, quick: bool, out: Path, *,
+               sizes: Sequence[tuple[int, int]] = BUILD_SIZES,
+               methods: Sequence[str] = BUILD_METHODS, repeats: int | None = None,
+               slice_charts: dict[str, Path] | None = None,
+               say: Callable[[str], None] = _say) -> dict[str, Any]:
+    """:func:`build_fpsm` at each (slices, points) of ``sizes`` by each of ``methods``; each
+    build (s) the median of ``repeats`` (default 1 when ``quick``, else 3). ``sizes`` must
+    hold (15, 15) and ``methods`` "slp" (the target's model). ``slice_charts``: method ->
+    where its 15 x 15 model's slices are drawn (default ``out/planning_fpsm_slices_*.png``
+    for slp and paper)."""
+    repeats = (1 if quick else 3) if repeats is None else repeats
+    if slice_charts is None:
+        slice_charts = {m: out / f"planning_fpsm_slices_{m}.png" for m in ("slp", "paper")}
     rows = []
-    for slices, points in BUILD_SIZES:
-        for method in BUILD_METHODS:
+    for slices, points in sizes:
+        for method in methods:
             reps = []
             for _ in range(repeats):
                 model, rep = build_fpsm(mesh, slices, points, SAMPLES,
@@ -296,16 +311,16 @@ def full_model(mesh: Any, quick: bool, out: Path) -> dict[str, Any]:
                          "penetrating_samples": rep.penetrating_samples,
                          "penetration_max_mm": rep.penetration_max * 1e3})
             r = rows[-1]
-            _say(f"full model {slices}x{points} {method:5s}: {r['total_s'] * 1e3:7.0f} ms "
-                 f"(pre-assignment {r['preassign_s'] * 1e3:.0f} ms), coverage "
-                 f"{r['coverage']:.1%} (worst slice {r['coverage_worst_slice']:.1%}), "
-                 f"{r['penetrating_samples']} penetrating samples, deepest "
-                 f"{r['penetration_max_mm']:.3f} mm")
-            if (slices, points) == (15, 15) and method in ("slp", "paper"):
+            say(f"full model {slices}x{points} {method:5s}: {r['total_s'] * 1e3:7.0f} ms "
+                f"(pre-assignment {r['preassign_s'] * 1e3:.0f} ms), coverage "
+                f"{r['coverage']:.1%} (worst slice {r['coverage_worst_slice']:.1%}), "
+                f"{r['penetrating_samples']} penetrating samples, deepest "
+                f"{r['penetration_max_mm']:.3f} mm")
+            if (slices, points) == (15, 15) and method in slice_charts:
                 from oralnav.bench.plan_figures import slice_fits
 
                 dense = slice_boundaries(mesh, model.z, DENSE_RAYS)
-                slice_fits(model, dense, out / f"planning_fpsm_slices_{method}.png",
+                slice_fits(model, dense, slice_charts[method],
                            f"FPSM 15 x 15 ({method}): coverage {rep.coverage:.1%}, "
                            f"{rep.penetrating_samples} penetrating samples")
 
@@ -331,23 +346,31 @@ def full_model(mesh: Any, quick: bool, out: Path) -> dict[str, Any]:
            "penetrating_samples": rep.penetrating_samples,
            "penetration_max_mm": rep.penetration_max * 1e3,
            "excursion_max_mm": max(model.certificate.excursion) * 1e3}
-    _say(f"full model 15x15 slp on slab envelopes: {env['total_s'] * 1e3:.0f} ms + rod-check "
-         f"grids {env['rod_check_build_s'] * 1e3:.0f} ms, coverage {env['coverage']:.1%} of "
-         f"the envelopes, {env['coverage_plane']:.1%} of the plane cuts, "
-         f"{env['penetrating_samples']} penetrating samples, excursion "
-         f"{env['excursion_max_mm']:.3f} mm")
+    say(f"full model 15x15 slp on slab envelopes: {env['total_s'] * 1e3:.0f} ms + rod-check "
+        f"grids {env['rod_check_build_s'] * 1e3:.0f} ms, coverage {env['coverage']:.1%} of "
+        f"the envelopes, {env['coverage_plane']:.1%} of the plane cuts, "
+        f"{env['penetrating_samples']} penetrating samples, excursion "
+        f"{env['excursion_max_mm']:.3f} mm")
 
-    def get(s: int, p: int, m: str) -> dict[str, Any]:
-        return next(r for r in rows if (r["slices"], r["points"], r["method"]) == (s, p, m))
+    def get(s: int, p: int, m: str) -> dict[str, Any] | None:
+        return next((r for r in rows if (r["slices"], r["points"], r["method"]) == (s, p, m)),
+                    None)
 
     ours = get(15, 15, "slp")
-    speed = {f"{s}x{p}": {"paper_method_over_slp": get(s, p, "paper")["total_s"]
-                          / get(s, p, "slp")["total_s"],
-                          "paper_method_over_lbfgs": get(s, p, "paper")["total_s"]
-                          / get(s, p, "lbfgs")["total_s"]} for s, p in BUILD_SIZES}
-    speed["paper_33.6s_over_slp_15x15"] = 33.613 / ours["total_s"]
-    speed["paper_33.6s_over_slp_15x20"] = 33.613 / get(15, 20, "slp")["total_s"]
-    speed["paper_12.2s_over_slp_10x10"] = 12.227 / get(10, 10, "slp")["total_s"]
+    if ours is None:
+        raise ValueError("full_model needs the 15 x 15 slp build (the target's model)")
+    # speed ratios of whatever pairs were built (a shortened run builds fewer)
+    speed: dict[str, Any] = {}
+    for s, p in sizes:
+        base = {m: get(s, p, m) for m in ("paper", "slp", "lbfgs")}
+        if base["paper"] is not None:
+            speed[f"{s}x{p}"] = {f"paper_method_over_{m}": base["paper"]["total_s"]
+                                 / base[m]["total_s"]
+                                 for m in ("slp", "lbfgs") if base[m] is not None}
+    for (s, p), paper_s in (((15, 15), 33.613), ((15, 20), 33.613), ((10, 10), 12.227)):
+        r = get(s, p, "slp")
+        if r is not None:
+            speed[f"paper_{paper_s:.1f}s_over_slp_{s}x{p}"] = paper_s / r["total_s"]
     target = {"method": "slp", "total_s": ours["total_s"], "coverage": ours["coverage"],
               "penetrating_samples": ours["penetrating_samples"],
               "target": f"15x15 <= {BUILD_TARGET_S} s, coverage >= {COVERAGE_TARGET:.0%}, "
@@ -363,12 +386,16 @@ def full_model(mesh: Any, quick: bool, out: Path) -> dict[str, Any]:
             "speedup": speed, "target": target, "paper_s": PAPER_BUILD_S}
 
 
-def _chart_build(doc: dict[str, Any], out: Path) -> Path:
+def chart_build(full: dict[str, Any], path: Path) -> Path:
+    """:func:`full_model`'s builds as time (s) against coverage (%), the paper's C++
+    times and the target marked, the legend beside the axes."""
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(7.2, 4.8))
+    fig, ax = plt.subplots(figsize=(8.4, 4.8))
     col = {"slp": "tab:blue", "lbfgs": "tab:green", "paper": "tab:red"}
-    mk = {(10, 10): "o", (15, 15): "s", (15, 20): "D"}
-    for r in doc["full_model"]["rows"]:
+    shapes = iter("osD^vP")
+    mk = {size: next(shapes, "o") for size in dict.fromkeys(
+        (r["slices"], r["points"]) for r in full["rows"])}
+    for r in full["rows"]:
         ax.plot(r["total_s"], r["coverage"] * 100, mk[(r["slices"], r["points"])],
                 color=col[r["method"]], ms=8,
                 mfc=col[r["method"]] if r["penetrating_samples"] == 0 else "none")
@@ -380,8 +407,11 @@ def _chart_build(doc: dict[str, Any], out: Path) -> Path:
     ax.axvline(BUILD_TARGET_S, color="tab:purple", lw=0.8)
     ax.axhline(COVERAGE_TARGET * 100, color="tab:purple", lw=0.8,
                label="target: <= 1 s at >= 90 % (15x15)")
+    built = {r["method"] for r in full["rows"]}
     for m, c in col.items():
-        ax.plot([], [], "o", color=c, label=m if m != "paper" else "paper eqs. 7-9 (here)")
+        if m in built:
+            ax.plot([], [], "o", color=c,
+                    label=m if m != "paper" else "paper eqs. 7-9 (here)")
     ax.plot([], [], "o", color="gray", mfc="none", label="open: penetrating samples")
     ax.set_xscale("log")
     ax.set_ylim(50, 100)
@@ -389,9 +419,10 @@ def _chart_build(doc: dict[str, Any], out: Path) -> Path:
     ax.set_ylabel("coverage (%)")
     ax.set_title("full model on the parametric mouth: speed against accuracy", fontsize=10)
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7, loc="lower left")
+    # beside the axes: inside, the legend covered the fast builds' points
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     fig.tight_layout()
-    path = out / "planning_build.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -838,43 +869,55 @@ def _pso_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
             "collision_free": float(np.mean([r["collision_free"] for r in runs]))}
 
 
-def pso(cases: dict[str, PlanningScene], quick: bool, out: Path) -> dict[str, Any]:
+def pso(cases: dict[str, PlanningScene], quick: bool, out: Path, *,
+        particles: Sequence[int] = PARTICLES, inertias: Sequence[float] = INERTIAS,
+        seeds: int | None = None, reference_grid: tuple[int, int] = (401, 361),
+        contours: dict[str, Path] | None = None,
+        say: Callable[[str], None] = _say) -> dict[str, Any]:
+    """PSO on each scene of ``cases``: ``seeds`` runs (default 10 when ``quick``, else 20)
+    at each swarm size of ``particles`` (with the scene's c0) and each inertia c0 of
+    ``inertias`` (30 particles), against a reference optimum on a ``reference_grid``
+    (d_T x theta_T cells) polished by Nelder-Mead; the scene's own settings' placement
+    drawn on the objective's contour at ``contours[name]`` (default
+    ``out/planning_contour_<name>.png``). The swarm sizes must include 30 (the target's)."""
     from oralnav.bench.plan_figures import objective_contour
 
-    seeds = range(10 if quick else 20)
+    seeds = range((10 if quick else 20) if seeds is None else seeds)
+    contours = contours or {}
     res: dict[str, Any] = {"seeds": len(seeds), "gap_ok": GAP_OK, "cases": {}}
     for name, scene in cases.items():
         problem = PlacementProblem(scene.model, scene.hole, scene.settings)
         check = RodCheck(scene.model) if scene.model.certificate is not None else None
         place(scene.model, scene.hole, scene.settings, check)        # warm-up
         objective_us = _time_objective(problem, scene.settings.pso.particles)
-        _say(f"pso {name}: objective of {scene.settings.pso.particles} particles "
-             f"{objective_us['compiled']:.1f} us compiled, {objective_us['numpy']:.1f} us "
-             "numpy")
-        ref = _reference(problem, 401, 361, check)
+        say(f"pso {name}: objective of {scene.settings.pso.particles} particles "
+            f"{objective_us['compiled']:.1f} us compiled, {objective_us['numpy']:.1f} us "
+            "numpy")
+        ref = _reference(problem, *reference_grid, check)
         fref = ref["reference"]["objective"]
-        _say(f"pso {name}: reference optimum {fref:.6f} at d_T "
-             f"{ref['reference']['d_T_mm']:.3f} mm, theta_T "
-             f"{ref['reference']['theta_T_deg']:.3f} deg (grid {ref['grid_s']:.1f} s)")
+        say(f"pso {name}: reference optimum {fref:.6f} at d_T "
+            f"{ref['reference']['d_T_mm']:.3f} mm, theta_T "
+            f"{ref['reference']['theta_T_deg']:.3f} deg (grid {ref['grid_s']:.1f} s)")
         runs, by_p, by_c0 = [], [], []
-        for p in PARTICLES:
+        for p in particles:
             rs = _pso_runs(scene, problem, fref, seeds, p, scene.settings.pso.c0, check)
             runs += rs
             by_p.append(_pso_summary(rs))
             s = by_p[-1]
-            _say(f"  {p:3d} particles: {s['time_ms']['median']:.1f} ms median "
-                 f"({s['time_ms']['p90']:.1f} p90), {s['iterations']['median']:.0f} iterations,"
-                 f" gap median {s['gap']['median']:.2e} p90 {s['gap']['p90']:.2e}, "
-                 f"{s['within_gap_ok']:.0%} within {GAP_OK:g}")
-        for c0 in INERTIAS:
+            say(f"  {p:3d} particles: {s['time_ms']['median']:.1f} ms median "
+                f"({s['time_ms']['p90']:.1f} p90), {s['iterations']['median']:.0f} iterations,"
+                f" gap median {s['gap']['median']:.2e} p90 {s['gap']['p90']:.2e}, "
+                f"{s['within_gap_ok']:.0%} within {GAP_OK:g}")
+        for c0 in inertias:
             rs = _pso_runs(scene, problem, fref, seeds, 30, c0, check)
             runs += rs
             by_c0.append(_pso_summary(rs))
             s = by_c0[-1]
-            _say(f"  c0 = {c0}: {s['time_ms']['median']:.1f} ms, gap p90 {s['gap']['p90']:.2e},"
-                 f" {s['within_gap_ok']:.0%} within {GAP_OK:g}")
+            say(f"  c0 = {c0}: {s['time_ms']['median']:.1f} ms, gap p90 {s['gap']['p90']:.2e},"
+                f" {s['within_gap_ok']:.0%} within {GAP_OK:g}")
         default = place(scene.model, scene.hole, scene.settings, check)
-        contour = objective_contour(problem, default, out / f"planning_contour_{name}.png")
+        contour = objective_contour(problem, default,
+                                    contours.get(name, out / f"planning_contour_{name}.png"))
         res["cases"][name] = {
             "scene": str(scene.path), "source": scene.source, **ref,
             "default": {"particles": scene.settings.pso.particles,
@@ -936,8 +979,14 @@ def _chart_pso(doc: dict[str, Any], out: Path) -> Path:
 
 # -- 5. Table 2 -------------------------------------------------------------------------
 
-def table2(scene: PlanningScene, quick: bool) -> dict[str, Any]:
-    seeds = range(10 if quick else 20)
+def table2(scene: PlanningScene, quick: bool, *, seeds: int | None = None,
+           grid: tuple[int, int] = (241, 181),
+           say: Callable[[str], None] = _say) -> dict[str, Any]:
+    """The paper's Table 2 on ``scene`` (its cylinder case): eqs. 14, 21 and 22, line2
+    shrunk and not, each placed with ``seeds`` PSO seeds (default 10 when ``quick``, else
+    20) and its minimum found on a ``grid`` of (d_T, theta_T) cells (0.5 mm x 1 degree by
+    default)."""
+    seeds = range((10 if quick else 20) if seeds is None else seeds)
     rows = []
     check = RodCheck(scene.model)
     for eq in (14, 21, 22):
@@ -946,7 +995,7 @@ def table2(scene: PlanningScene, quick: bool) -> dict[str, Any]:
             answers = [place(scene.model, scene.hole,
                              replace(s, pso=replace(s.pso, seed=k)), check) for k in seeds]
             problem = PlacementProblem(scene.model, scene.hole, s)
-            d, th, F = problem.grid(241, 181)        # 0.5 mm, 1 degree
+            d, th, F = problem.grid(*grid)
             best = float(F.min())
             ties = np.argwhere(F <= best + 1e-9)
             p0 = answers[0]
@@ -965,12 +1014,12 @@ def table2(scene: PlanningScene, quick: bool) -> dict[str, Any]:
                          "paper_d_T_mm": PAPER_TABLE2[eq][0],
                          "paper_theta_T_deg": PAPER_TABLE2[eq][1]})
             r = rows[-1]
-            _say(f"table 2, eq. {eq}, line2 {'shrunk' if shrink2 else 'not shrunk'}: d_T "
-                 f"{r['d_T_mm']:.3f} mm, theta_T {r['theta_T_deg']:.3f} deg (seeds: d_T "
-                 f"{r['d_T_mm_over_seeds']['min']:.2f}..{r['d_T_mm_over_seeds']['max']:.2f};"
-                 f" grid minimum in {r['grid_min_cells']} cells at d_T "
-                 f"{_list(r['grid_min_d_T_mm'])} mm); paper {PAPER_TABLE2[eq][0]} mm")
-    return {"scene": str(scene.path), "seeds": len(seeds), "rows": rows}
+            say(f"table 2, eq. {eq}, line2 {'shrunk' if shrink2 else 'not shrunk'}: d_T "
+                f"{r['d_T_mm']:.3f} mm, theta_T {r['theta_T_deg']:.3f} deg (seeds: d_T "
+                f"{r['d_T_mm_over_seeds']['min']:.2f}..{r['d_T_mm_over_seeds']['max']:.2f};"
+                f" grid minimum in {r['grid_min_cells']} cells at d_T "
+                f"{_list(r['grid_min_d_T_mm'])} mm); paper {PAPER_TABLE2[eq][0]} mm")
+    return {"scene": str(scene.path), "seeds": len(seeds), "grid": list(grid), "rows": rows}
 
 
 def _list(v: list[float], most: int = 6) -> str:
@@ -1057,7 +1106,7 @@ def main(out: Path, quick: bool = False) -> dict[str, Any]:
         doc[name] = run()
         doc["section_s"][name] = time.perf_counter() - t0
         _say(f"[{name}: {doc['section_s'][name]:.1f} s]")
-    charts = [*_chart_table1(doc, out), _chart_build(doc, out),
+    charts = [*_chart_table1(doc, out), chart_build(doc["full_model"], out / "planning_build.png"),
               _chart_rods(doc, out), _chart_pso(doc, out)]
     charts += [Path(c["contour"]) for c in doc["pso"]["cases"].values()]
     charts += sorted(out.glob("planning_fpsm_slices_*.png"))
