@@ -22,6 +22,7 @@ loses no trial: the scheduler runs its trials again elsewhere, and each comes ba
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -33,6 +34,9 @@ __all__ = ["SchedulerError", "TrialRunner"]
 OnResult = Callable[[int, Any, int, int], None]
 #: s to reach a cluster's scheduler before giving up
 CONNECT_TIMEOUT_S = 10.0
+#: How the local pool starts its workers (see TrialRunner.__init__)
+_START_METHOD = ("forkserver" if "forkserver" in multiprocessing.get_all_start_methods()
+                 else "spawn")
 
 
 class SchedulerError(RuntimeError):
@@ -80,7 +84,13 @@ class TrialRunner:
         self._cluster: Any = None
         if scheduler is None:
             if self.workers > 1:
-                self._pool = ProcessPoolExecutor(max_workers=self.workers)
+                # workers come from a fork server, never from this process: once a
+                # numba kernel (the needle tracker) has started OpenMP threads here, a
+                # forked child aborts ("fork() called from a process already using GNU
+                # OpenMP"), and a report runs such kernels between its sweeps
+                self._pool = ProcessPoolExecutor(
+                    max_workers=self.workers,
+                    mp_context=multiprocessing.get_context(_START_METHOD))
             return
         distributed = _dask()
         if scheduler == "local":

@@ -616,28 +616,48 @@ def particle_sweep(seeds: Sequence[int], frames: int, particles: Sequence[int] =
     return {"sweep": rows, "single_camera": one, "free_needle": still, "clips": info}
 
 
-def _nuisance(name: str, values: Sequence[float], make: Callable[[int, float], Clip | None],
-              seeds: Sequence[int], particles: int) -> list[dict[str, Any]]:
-    """One nuisance sweep: every value on every seed (a seed ``make`` cannot build is
-    listed as skipped)."""
-    points = []
-    for v in values:
-        runs, skipped, vis, contrast = [], [], [], []
-        for seed in seeds:
-            clip = make(seed, v)
-            if clip is None:
-                skipped.append(seed)
-                continue
-            vis += clip.visible
-            contrast.append(clip.contrast_dn)
-            runs.append(track_clip(clip, particles))
-        s = {"value": v, **summarise(runs), "skipped_seeds": skipped,
-             "visible_share_median": _pct(vis, 50),
-             "contrast_dn_median": _pct([c for c in contrast if math.isfinite(c)], 50),
-             "runs": runs}
-        _say_point(f"{name} {v:g}", s)
-        points.append(s)
-    return points
+def nuisance_clip(name: str, seed: int, value: float, frames: int) -> Clip | None:
+    """Trial ``seed``'s clip of ``frames`` frames under nuisance ``name`` at ``value``
+    (jaw width mm, normal-to-ray angle deg, contrast DN; see the module docstring);
+    ``None`` where the trial cannot be built so (no grasp, the needle out of view)."""
+    if name == "jaw_occlusion":
+        return held_clip(seed, frames, jaw_width=value * 1e-3)
+    if name == "edge_on":
+        made = edge_on_scene(seed, value)
+        return None if made is None else still_clip(seed, *made, frames)
+    if name == "low_contrast":
+        return still_clip(seed, *low_contrast_scene(seed, value), frames)
+    raise ValueError(f"unknown nuisance {name!r}; have {list(NUISANCES)}")
+
+
+def nuisance_trial(item: tuple[str, float, int, int, int]) -> dict[str, Any] | None:
+    """One trial of a nuisance sweep, ``(name, value, seed, frames, particles)``: the
+    track of :func:`nuisance_clip` (``track_clip``'s record) with the clip's visible
+    shares and measured contrast, or ``None`` where the clip cannot be built. A pure
+    function of its item, so it runs on any engine of ``bench/executor.py``; BLAS is held
+    to one thread in it, as in :func:`run`."""
+    from threadpoolctl import threadpool_limits
+
+    name, value, seed, frames, particles = item
+    with threadpool_limits(limits=1, user_api="blas"):
+        clip = nuisance_clip(name, seed, value, frames)
+        if clip is None:
+            return None
+        return {"run": track_clip(clip, particles), "visible": clip.visible,
+                "contrast_dn": clip.contrast_dn}
+
+
+def _point(value: float, seeds: Sequence[int], trials: Sequence[dict[str, Any] | None]
+           ) -> dict[str, Any]:
+    """One nuisance value's summary from its trials (``None``: the seed was skipped)."""
+    runs = [t["run"] for t in trials if t is not None]
+    vis = [v for t in trials if t is not None for v in t["visible"]]
+    contrast = [t["contrast_dn"] for t in trials
+                if t is not None and math.isfinite(t["contrast_dn"])]
+    return {"value": value, **summarise(runs),
+            "skipped_seeds": [s for s, t in zip(seeds, trials, strict=True) if t is None],
+            "visible_share_median": _pct(vis, 50), "contrast_dn_median": _pct(contrast, 50),
+            "runs": runs}
 
 
 def _edge_on_seeds(start: int, n: int, angles: Sequence[float]) -> list[int]:
@@ -652,38 +672,53 @@ def _edge_on_seeds(start: int, n: int, angles: Sequence[float]) -> list[int]:
     return out
 
 
+#: Per nuisance: its value's key in the points and its unit.
+_NUISANCE_KEYS = {"jaw_occlusion": ("jaw_width_mm", "mm"),
+                  "edge_on": ("normal_to_ray_deg", "deg"),
+                  "low_contrast": ("contrast_dn", "DN")}
+
+
 def failures(start: int, n: int, frames: int, values: dict[str, Sequence[float]],
-             particles: int = TARGET["particles"]) -> dict[str, Any]:
+             particles: int = TARGET["particles"], scheduler: str | None = None,
+             workers: int | None = None) -> dict[str, Any]:
     """Section 2: the three nuisance sweeps, each over ``values[name]`` in order of growing
     nuisance, on ``n`` trials from seed ``start`` (edge-on: the first ``n`` that fit at
-    every angle)."""
+    every angle). Every (value, seed) is a trial on the engine ``scheduler`` names
+    (``bench/executor.py``; default a local process pool of ``workers``): the errors do
+    not depend on where a trial ran, its update times do (they are not what this section
+    reports)."""
+    from oralnav.bench.executor import TrialRunner
+
     seeds = list(range(start, start + n))
     edge_seeds = _edge_on_seeds(start, n, values["edge_on"])
+    used = {"jaw_occlusion": seeds, "edge_on": edge_seeds, "low_contrast": seeds}
+    items = [(name, v, seed, frames, particles)
+             for name in _NUISANCE_KEYS for v in values[name] for seed in used[name]]
+    t0 = time.perf_counter()
 
-    def jaw(seed: int, w_mm: float) -> Clip | None:
-        return held_clip(seed, frames, jaw_width=w_mm * 1e-3)
+    def said(i: int, _trial: Any, done: int, total: int) -> None:
+        name, v, seed = items[i][:3]
+        _say(f"{name} {v:g} seed {seed} ({done}/{total}), "
+             f"{time.perf_counter() - t0:.0f} s")
 
-    def edge(seed: int, deg: float) -> Clip | None:
-        made = edge_on_scene(seed, deg)
-        return None if made is None else still_clip(seed, *made, frames)
-
-    def low(seed: int, c: float) -> Clip:
-        return still_clip(seed, *low_contrast_scene(seed, c), frames)
-
+    with TrialRunner(scheduler, workers) as runner:
+        trials = runner.map(nuisance_trial, items, on_result=said) if items else []
     out: dict[str, Any] = {"particles": particles, "seeds": seeds,
                            "edge_on_seeds": edge_seeds, "frames_per_trial": frames}
-    for name, key, make, unit, sd in (
-            ("jaw_occlusion", "jaw_width_mm", jaw, "mm", seeds),
-            ("edge_on", "normal_to_ray_deg", edge, "deg", edge_seeds),
-            ("low_contrast", "contrast_dn", low, "DN", seeds)):
-        t0 = time.perf_counter()
-        pts = _nuisance(name, values[name], make, sd, particles)
-        for p in pts:
+    for name, (key, unit) in _NUISANCE_KEYS.items():
+        pts = []
+        for v in values[name]:
+            got = [t for it, t in zip(items, trials, strict=True)
+                   if it[0] == name and it[1] == v]
+            p = _point(v, used[name], got)
+            _say_point(f"{name} {v:g}", p)
             p[key] = p.pop("value")
+            pts.append(p)
         out[name] = pts
         out[f"{name}_where"] = {"unit": unit, "lost": _where(pts, key, _lost),
                                 "target": _where(pts, key, _fails)}
-        _say(f"[{name}: {time.perf_counter() - t0:.0f} s; {out[f'{name}_where']}]")
+        _say(f"[{name}: {out[f'{name}_where']}]")
+    out["seconds"] = time.perf_counter() - t0
     return out
 
 
@@ -879,9 +914,13 @@ def _plain(x: Any) -> Any:
 
 def run(out: Path, *, quick: bool, seed: int, sweep_seeds: int, sweep_frames: int,
         particles: Sequence[int], failure_seeds: int, failure_frames: int,
-        nuisances: dict[str, Sequence[float]]) -> dict[str, Any]:
+        nuisances: dict[str, Sequence[float]], scheduler: str | None = None,
+        workers: int | None = 1) -> dict[str, Any]:
     """The bench with explicit sizes (``main`` picks them; the smoke test shrinks them).
-    ``nuisances``: the values of each nuisance sweep, by section name.
+    ``nuisances``: the values of each nuisance sweep, by section name. The nuisance
+    trials run on the engine ``scheduler``/``workers`` name (``bench/executor.py``); by
+    default in this process, as before: the particles sweep has by then started the
+    tracker's OpenMP threads here, and a process pool forked after that aborts.
 
     BLAS is held to one thread while it runs (threadpoolctl; restored after): the
     refinement's small solves gain nothing from BLAS threads, and on the shared 2-core
@@ -893,12 +932,13 @@ def run(out: Path, *, quick: bool, seed: int, sweep_seeds: int, sweep_frames: in
         return _run(Path(out), quick=quick, seed=seed, sweep_seeds=sweep_seeds,
                     sweep_frames=sweep_frames, particles=particles,
                     failure_seeds=failure_seeds, failure_frames=failure_frames,
-                    nuisances=nuisances)
+                    nuisances=nuisances, scheduler=scheduler, workers=workers)
 
 
 def _run(out: Path, *, quick: bool, seed: int, sweep_seeds: int, sweep_frames: int,
          particles: Sequence[int], failure_seeds: int, failure_frames: int,
-         nuisances: dict[str, Sequence[float]]) -> dict[str, Any]:
+         nuisances: dict[str, Sequence[float]], scheduler: str | None,
+         workers: int | None) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     pinned = _blas_threads()
@@ -920,7 +960,8 @@ def _run(out: Path, *, quick: bool, seed: int, sweep_seeds: int, sweep_frames: i
     doc["section_s"] = {"sweep": time.perf_counter() - t0}
     doc["machine"]["load_average_after_sweep"] = list(os.getloadavg())
     t0 = time.perf_counter()
-    doc["failures"] = failures(seed, failure_seeds, failure_frames, nuisances)
+    doc["failures"] = failures(seed, failure_seeds, failure_frames, nuisances,
+                               scheduler=scheduler, workers=workers)
     doc["section_s"]["failures"] = time.perf_counter() - t0
     at = next((r for r in rows if r["particles"] == TARGET["particles"]), None)
     if at is not None and at["updates"]:

@@ -86,7 +86,7 @@ def test_a_worker_of_another_build_is_refused(monkeypatch):
     from oralnav.bench import executor
 
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
-                                  dashboard_address=None) as lc:
+                                  dashboard_address=":0") as lc:
         monkeypatch.setattr(executor, "oralnav_build", build_seen_from_worker_thread)
         with pytest.raises(SchedulerError, match=r"0\.0\.9 \(bbbb\).*0\.1\.0 \(aaaa\)"):
             TrialRunner(lc.scheduler_address)
