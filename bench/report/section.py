@@ -102,17 +102,20 @@ def section_verdict(rows: list[Row], error: str | None = None) -> tuple[Verdict,
     worst = next(v for v in VERDICTS if v in verdicts)
     targeted = [r for r in rows if r.target is not None]
     if worst == "shown":
-        return "shown", f"shown: {len(rows)} figures beside the paper's, no target to pass"
+        return "shown", f"shown: {len(rows)} figures, no target to pass"
     if worst == "met":
         return "met", f"met: {len(targeted)} of {len(targeted)} targets"
     bad = [r for r in rows if r.verdict == worst]
     first = bad[0]
-    what = (f"{first.figure} = {_num(float(first.ours))} {first.unit}, target "  # type: ignore[arg-type]
-            f"{first.target.text(first.unit)}" if worst == "missed" and first.target
-            else first.figure)
+    if worst == "missed" and first.target:
+        what = (f"{first.figure} = {_num(float(first.ours))} {first.unit}, "  # type: ignore[arg-type]
+                f"target {first.target.text(first.unit)}")
+    else:  # not measured: the note says why, where the experiment knows
+        what = first.figure + (f" ({first.note})" if first.note else "")
     more = f" (and {len(bad) - 1} more)" if len(bad) > 1 else ""
     met = sum(r.verdict == "met" for r in targeted)
-    return worst, f"{worst}: {what}{more}; {met} of {len(targeted)} targets met"
+    tally = f"; {met} of {len(targeted)} targets met" if targeted else ""
+    return worst, f"{worst}: {what}{more}{tally}"
 
 
 @dataclass
