@@ -983,11 +983,16 @@ def _run(out: Path, *, quick: bool, seed: int, sweep_seeds: int, sweep_frames: i
     (out / "needle_tracking.json").write_text(json.dumps(_plain(doc), indent=1) + "\n")
     t = doc["target"]
     if "measured_updates_per_s" in t:
+        def word(met: bool) -> str:
+            return "met" if met else "MISSED"
+
         _say(f"{TARGET['particles']} particles: {t['measured_updates_per_s']:.0f} updates/s "
-             f"(target {TARGET['updates_per_s']:.0f}), median "
+             f"(target {TARGET['updates_per_s']:.0f}: {word(t['met_speed'])}), median "
              f"{t['measured_position_mm_median']:.2f} mm / "
              f"{t['measured_angle_deg_median']:.2f} deg (target {TARGET['position_mm']} mm / "
-             f"{TARGET['angle_deg']} deg)")
+             f"{TARGET['angle_deg']} deg: {word(t['met_accuracy'])})")
+    else:
+        _say(f"{TARGET['particles']} particles were not run: the targets are not measured")
     _say(f"{doc['elapsed_s']:.0f} s; wrote {out}/needle_tracking.json and "
          f"{len(doc['charts'])} charts")
     return doc
