@@ -2,7 +2,10 @@
 as ``DIR/index.html`` (self-contained) and ``DIR/report.json`` (bench/report/).
 
     oralnav report --out DIR [--quick] [--force] [--only KEY ...] [--scheduler ADDRESS]
-                   [--workers N] [--list] [--json]
+                   [--workers N] [--config FILE] [--list] [--json]
+
+``--config FILE`` reads ``scheduler`` and ``workers`` from the file's ``[report]`` table
+(a lab's cluster address kept with its other settings); the options win over it.
 
 Progress and the time left go to stderr. Exit status: 0 the report is complete and no
 experiment failed (a missed target is a result, not an error), 1 an experiment failed
@@ -39,10 +42,44 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                          "local process pool")
     rp.add_argument("--workers", type=int, default=None,
                     help="worker processes for trials (default one per CPU)")
+    rp.add_argument("--config", metavar="FILE",
+                    help="a TOML file whose [report] table sets scheduler and workers (the "
+                         "options above win over it)")
     rp.add_argument("--list", action="store_true", help="list the experiments and exit")
     rp.add_argument("--json", action="store_true",
                     help="print a summary object (key -> verdict) on stdout")
     rp.set_defaults(func=cmd_report)
+
+
+def _apply_config(args: argparse.Namespace, path: Path) -> None:
+    """Fill ``args.scheduler`` and ``args.workers`` from ``path``'s ``[report]`` table
+    where the command line left them unset; ValueError naming the file and key."""
+    import tomllib
+
+    try:
+        doc = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise ValueError(f"--config {path}: cannot read it ({exc.strerror})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"--config {path}: not TOML ({exc})") from None
+    table = doc.get("report", {})
+    if not isinstance(table, dict):
+        raise ValueError(f"--config {path}: [report] must be a table")
+    unknown = sorted(set(table) - {"scheduler", "workers"})
+    if unknown:
+        raise ValueError(f"--config {path}: [report] has unknown keys {unknown}; it takes "
+                         "scheduler and workers")
+    sched, workers = table.get("scheduler"), table.get("workers")
+    if sched is not None and (not isinstance(sched, str) or not sched):
+        raise ValueError(f"--config {path}: [report] scheduler must be 'local' or an "
+                         f"address such as 'tcp://host:8786', got {sched!r}")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)):
+        raise ValueError(f"--config {path}: [report] workers must be a whole number, got "
+                         f"{workers!r}")
+    if args.scheduler is None:
+        args.scheduler = sched
+    if args.workers is None:
+        args.workers = workers
 
 
 def _say(msg: str) -> None:
@@ -67,6 +104,12 @@ def cmd_report(args: argparse.Namespace) -> int:
     if not args.out:
         _say("error: --out DIR is required (or --list)")
         return 2
+    if args.config:
+        try:
+            _apply_config(args, Path(args.config))
+        except ValueError as exc:
+            _say(f"error: {exc}")
+            return 2
     if args.workers is not None and args.workers < 1:
         _say(f"error: --workers must be at least 1, got {args.workers}")
         return 2

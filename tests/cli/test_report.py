@@ -48,3 +48,26 @@ def test_bad_workers_and_unreachable_scheduler(tmp_path, capsys, monkeypatch):
                     "tcp://127.0.0.1:9"])
     assert code == 2
     assert "tcp://127.0.0.1:9" in capsys.readouterr().err
+
+
+def test_config_file_sets_the_scheduler(tmp_path, capsys, monkeypatch):
+    """[report] scheduler and workers come from --config where the options leave them
+    unset; a bad key or value is refused naming the file and the key."""
+
+    seen = {}
+
+    def fake_run(out, chosen, settings, force, say):
+        seen.update(scheduler=settings.scheduler, workers=settings.workers)
+        return {"complete": True, "experiments": {}}
+
+    monkeypatch.setattr("oralnav.bench.report.run.run_report", fake_run)
+    cfg = tmp_path / "lab.toml"
+    cfg.write_text('[report]\nscheduler = "local"\nworkers = 3\n')
+    assert cli.run(["report", "--out", str(tmp_path / "r"), "--config", str(cfg)]) == 0
+    assert seen == {"scheduler": "local", "workers": 3}
+    assert cli.run(["report", "--out", str(tmp_path / "r"), "--config", str(cfg),
+                    "--workers", "1"]) == 0
+    assert seen["workers"] == 1
+    cfg.write_text('[report]\nschedular = "local"\n')
+    assert cli.run(["report", "--out", str(tmp_path / "r"), "--config", str(cfg)]) == 2
+    assert "schedular" in capsys.readouterr().err
