@@ -350,6 +350,29 @@ def sweeps(frames: int, scheduler: str | None = None, workers: int | None = None
 
 
 # -- charts -------------------------------------------------------------------------------
+def chart_table_one(t1: dict[str, Any], path: Path) -> None:
+    """Table I's jitter (``table_one``'s result) as bars per estimator, one quantity per
+    axis: translation STD (mm) above, rotation STD (deg) below; good pose left, bad
+    right."""
+    from oralnav.bench.report.charts import legend_outside, plt, save
+
+    fig, axes = plt().subplots(2, 2, figsize=(12, 6.5), layout="constrained")
+    for col, label in enumerate(("good", "bad")):
+        var = t1[label]["variants"]
+        names = list(var)
+        w = 0.8 / max(len(names), 1)
+        for i, n in enumerate(names):
+            axes[0, col].bar(np.arange(3) + i * w, var[n]["std_mm"], width=w, label=n)
+            axes[1, col].bar([i * w], [var[n]["std_deg"]], width=w, label=n)
+        axes[0, col].set_xticks(np.arange(3) + 0.4 - w / 2, ["X", "Y", "Z"])
+        axes[0, col].set_ylabel("translation STD (mm)")
+        axes[0, col].set_title(f"{label} opener pose: STD over {t1['frames']} frames")
+        axes[1, col].set_xticks([i * w for i in range(len(names))], names, rotation=25)
+        axes[1, col].set_ylabel("rotation STD (deg)")
+    legend_outside(axes[0, 1])
+    save(fig, path)
+
+
 def charts(doc: dict[str, Any], out: Path) -> list[str]:
     import matplotlib
 
@@ -395,24 +418,7 @@ def charts(doc: dict[str, Any], out: Path) -> list[str]:
     plt.close(fig)
     written.append("time_breakdown.png")
 
-    t1 = doc["table_one"]
-    # one quantity per axis: translation (mm) on the top row, rotation (deg) below
-    fig, axes = plt.subplots(2, 2, figsize=(12, 6.5), layout="constrained")
-    for col, label in enumerate(("good", "bad")):
-        var = t1[label]["variants"]
-        names = list(var)
-        w = 0.8 / len(names)
-        for i, n in enumerate(names):
-            axes[0, col].bar(np.arange(3) + i * w, var[n]["std_mm"], width=w, label=n)
-            axes[1, col].bar([i * w], [var[n]["std_deg"]], width=w, label=n)
-        axes[0, col].set_xticks(np.arange(3) + 0.4 - w / 2, ["X", "Y", "Z"])
-        axes[0, col].set_ylabel("translation STD (mm)")
-        axes[0, col].set_title(f"{label} opener pose: STD over {t1['frames']} frames")
-        axes[1, col].set_xticks([i * w for i in range(len(names))], names, rotation=25)
-        axes[1, col].set_ylabel("rotation STD (deg)")
-    axes[0, 1].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
-    fig.savefig(out / "table_one.png", dpi=110)
-    plt.close(fig)
+    chart_table_one(doc["table_one"], out / "table_one.png")
     written.append("table_one.png")
 
     sw = doc["sweeps"]

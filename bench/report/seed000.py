@@ -134,24 +134,9 @@ def table1(ctx: Context) -> Section:
 
 
 def _chart_table1(ctx: Context, key: str, doc: dict[str, Any]) -> str:
-    p = plt()
-    fig, axes = p.subplots(2, 2, figsize=(11, 6.5), layout="constrained")
-    for col, pose in enumerate(("good", "bad")):
-        var = doc[pose]["variants"]
-        names = list(var)
-        w = 0.8 / max(len(names), 1)
-        for i, n in enumerate(names):
-            axes[0, col].bar(np.arange(3) + i * w, var[n]["std_mm"], width=w, label=n)
-            axes[1, col].bar([i * w], [var[n]["std_deg"]], width=w, label=n)
-        axes[0, col].set_xticks(np.arange(3) + 0.4 - w / 2, ["X", "Y", "Z"])
-        axes[0, col].set_ylabel("translation STD (mm)")
-        axes[0, col].set_title(f"{pose} pose: translation jitter")
-        axes[1, col].set_xticks([i * w for i in range(len(names))], names, rotation=25)
-        axes[1, col].set_ylabel("rotation STD (deg)")
-        axes[1, col].set_title(f"{pose} pose: rotation jitter")
-    legend_outside(axes[0, 1])
-    fig.suptitle(f"Jitter over {doc['frames']} frames (rendered cell; bars: estimator)")
-    return save(fig, ctx.chart(key, "jitter"))
+    path = ctx.chart(key, "jitter")
+    navigation.chart_table_one(doc, path)
+    return path.name
 
 
 # -- Fig. 9 -------------------------------------------------------------------------------
