@@ -116,22 +116,53 @@ def classify(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
             for (st, c), s in sorted(seen.items(), key=lambda kv: -len(kv[1]))]
 
 
+def _kept_trials(store: Path | None, seeds: Sequence[int]) -> dict[int, dict[str, Any]]:
+    """The records of ``seeds`` already in ``store`` (one ``SEED.json`` each); a file that
+    does not read back (a write cut short) is left out, so its trial runs again."""
+    kept: dict[int, dict[str, Any]] = {}
+    if store is None:
+        return kept
+    for s in seeds:
+        try:
+            rec = json.loads((store / f"{s}.json").read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(rec, dict) and rec.get("seed") == s:
+            kept[s] = rec
+    return kept
+
+
 def run(trials: int, seed: int, workers: int | None = None,
-        progress: bool = True, scheduler: str | None = None) -> dict[str, Any]:
+        progress: bool = True, scheduler: str | None = None,
+        store: Path | None = None) -> dict[str, Any]:
     """The Monte Carlo over ``trials`` seeds from ``seed``; the summary document. The
     trials run on the engine ``scheduler`` names (``bench/executor.py``: by default a
-    local process pool of ``workers``; a trial is a pure function of its seed)."""
+    local process pool of ``workers``; a trial is a pure function of its seed).
+    ``store``: a folder each finished trial's record is written to as it comes in, and
+    read back from on the next run, so an interrupted Monte Carlo resumes where it
+    stopped (the caller keeps it to one commit: a record is the code's as much as the
+    seed's)."""
     from oralnav.bench.executor import TrialRunner
+    from oralnav.config.loader import atomic_write_text
     from oralnav.control.needle.procedure import step_rates
 
     if trials < 1:
         raise ValueError(f"needle bench: trials must be >= 1, got {trials}")
-    if scheduler is None:
-        workers = max(1, min(workers or os.cpu_count() or 1, trials))
     seeds = list(range(seed, seed + trials))
+    kept = _kept_trials(store, seeds)
+    todo = [s for s in seeds if s not in kept]
+    if scheduler is None:
+        workers = max(1, min(workers or os.cpu_count() or 1, max(len(todo), 1)))
+    if store is not None:
+        store.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    if progress and kept:
+        print(f"needle: {len(kept)} of {trials} trials kept from an interrupted run in "
+              f"{store}", file=sys.stderr, flush=True)
 
     def report(_i: int, rec: dict[str, Any], done: int, total: int) -> None:
+        if store is not None:
+            atomic_write_text(store / f"{rec['seed']}.json", json.dumps(rec) + "\n")
         if not progress:
             return
         ok = all(rec["steps"].values())
@@ -143,11 +174,13 @@ def run(trials: int, seed: int, workers: int | None = None,
 
     with TrialRunner(scheduler, workers) as runner:
         if progress:
-            print(f"needle: {trials} trials on {runner.name}"
+            print(f"needle: {len(todo)} trials on {runner.name}"
                   + (f", dashboard {runner.dashboard}" if runner.dashboard else ""),
                   file=sys.stderr, flush=True)
-        records = runner.map(run_trial, seeds, on_result=report)
+        fresh = runner.map(run_trial, todo, on_result=report) if todo else []
         engine, workers = runner.name, runner.workers
+    ran = dict(zip(todo, fresh, strict=True))
+    records = [kept[s] if s in kept else ran[s] for s in seeds]
     rates = step_rates(records)
     causes = Counter(r["failure"]["cause"] for r in records if r["failure"])
     return {"bench": "needle", "trials": rates["trials"], "overall": rates["overall"],

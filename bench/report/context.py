@@ -26,6 +26,8 @@ class Context:
             ``None`` a local process pool, ``"local"`` a Dask LocalCluster, or an address).
         workers: processes for the trials (``None``: one per CPU).
         say: a progress line for stderr (the runner prefixes the experiment's key).
+        trials: the folder where long experiments keep each finished trial, so that an
+            interrupted report resumes them (``None``: nothing kept).
     """
 
     quick: bool
@@ -33,6 +35,12 @@ class Context:
     scheduler: str | None = None
     workers: int | None = None
     say: Callable[[str], None] = field(default=_quiet)
+    trials: Path | None = None
+
+    def trial_store(self, key: str) -> Path | None:
+        """Where experiment ``key`` keeps its finished trials (``trials/<key with _>``),
+        or ``None`` when this run keeps none."""
+        return None if self.trials is None else self.trials / key.replace("/", "_")
 
     def chart(self, key: str, name: str) -> Path:
         """Where experiment ``key``'s chart ``name`` goes: ``charts/<key with _>_<name>.png``

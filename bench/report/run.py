@@ -9,7 +9,10 @@ The folder's states (issue 35, "bad input"):
   (a failed one runs again);
 - anything else (a finished report, one of other settings, other files): refused with
   :class:`ReportError` unless ``force``, which starts over (only the report's own files
-  are replaced: ``report.json``, ``index.html``, ``charts/``).
+  are replaced: ``report.json``, ``index.html``, ``charts/``, ``trials/``).
+
+Within an experiment, the needle Monte Carlo keeps each finished trial under ``trials/``
+as it comes in, so a resumed run reruns only the trials that had not finished.
 
 An experiment that raises becomes a failed section naming its error; the others still run.
 Ctrl-C stops the run with what finished already written; running the same command again
@@ -39,6 +42,8 @@ __all__ = ["CHARTS", "INDEX", "REPORT_JSON", "ReportError", "Settings", "run_rep
 REPORT_JSON = "report.json"
 INDEX = "index.html"
 CHARTS = "charts"
+#: Finished trials of the long experiments, kept so that an interrupted run resumes them
+TRIALS = "trials"
 
 
 class ReportError(RuntimeError):
@@ -93,11 +98,13 @@ def _kept(out: Path, settings: Settings, head: str, force: bool) -> dict[str, An
         else:
             why = "is not empty and holds no report"
         raise ReportError(f"--out {out} {why}: pass --force to write the report over it "
-                          "(only report.json, index.html and charts/ are replaced), or "
+                          "(only report.json, index.html, charts/ and trials/ are replaced), "
+                          "or "
                           "choose another folder")
     for name in (REPORT_JSON, INDEX):
         (out / name).unlink(missing_ok=True)
     shutil.rmtree(out / CHARTS, ignore_errors=True)
+    shutil.rmtree(out / TRIALS, ignore_errors=True)
     return {}
 
 
@@ -165,7 +172,7 @@ def run_report(out: Path, experiments: Sequence[Experiment], settings: Settings,
     for i, exp in enumerate(todo, 1):
         ctx = Context(quick=settings.quick, charts=out / CHARTS, scheduler=settings.scheduler,
                       workers=settings.workers,
-                      say=lambda m, k=exp.key: say(f"[{k}] {m}"))
+                      say=lambda m, k=exp.key: say(f"[{k}] {m}"), trials=out / TRIALS)
         say(f"({i}/{len(todo)}) {exp.key}: {exp.title}")
         t0 = time.perf_counter()
         try:

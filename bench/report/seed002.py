@@ -103,8 +103,10 @@ def run_tables(ctx: Context) -> Section:
         raise ValueError(f"seeds {first}-{last} overlap the development seeds "
                          f"{DEVELOPED_ON[0]}-{DEVELOPED_ON[1]}")
     ctx.say(f"needle Monte Carlo: {n} trials, seeds {first}-{last}")
+    # each trial kept as it finishes: 400 trials are over an hour here, and an
+    # interrupted report resumes them rather than starting the Monte Carlo again
     doc = needle.run(n, NEEDLE_SEED, workers=ctx.workers, progress=True,
-                     scheduler=ctx.scheduler)
+                     scheduler=ctx.scheduler, store=ctx.trial_store("002/tables"))
     records = doc["records"]
     counts = _step_counts(records)
     done = sum(all(v is True for v in r["steps"].values()) for r in records)

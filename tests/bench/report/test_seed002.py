@@ -152,3 +152,39 @@ def test_tracker_rate_pairs_the_paper_fps_with_ours(ctx, monkeypatch):
     assert d["data"]["seeds"] == [10000]
     assert (ctx.charts / d["charts"][0]).read_bytes()[:8] == PNG
     json.dumps(d)
+
+
+def test_an_interrupted_monte_carlo_resumes_its_trials(tmp_path, ctx, monkeypatch):
+    """Issue 35 "bad input" (an interrupted run: what finished is kept; rerunning
+    resumes): the report's needle Monte Carlo keeps each finished trial; stopped at its
+    third trial, the rerun runs only the trials that had not finished, and the tables
+    count every trial once."""
+    from oralnav.bench.report.run import Settings, run_report
+
+    seen: list[int] = []
+
+    def stops_at_10002(seed: int) -> dict:
+        if seed == 10002:
+            raise KeyboardInterrupt
+        seen.append(seed)
+        return _record(seed, None)
+
+    monkeypatch.setattr(needle, "run_trial", stops_at_10002)
+    exp = next(e for e in seed002.EXPERIMENTS if e.key == "002/tables")
+    with pytest.raises(KeyboardInterrupt):
+        run_report(tmp_path / "r", [exp], Settings(quick=True, workers=1))
+    assert seen == [10000, 10001]
+    assert sorted(p.name for p in (tmp_path / "r" / "trials" / "002_tables").iterdir()) == [
+        "10000.json", "10001.json"]
+
+    def fine(seed: int) -> dict:
+        seen.append(seed)
+        return _record(seed, None)
+
+    monkeypatch.setattr(needle, "run_trial", fine)
+    seen.clear()
+    doc = run_report(tmp_path / "r", [exp], Settings(quick=True, workers=1))
+    n = seed002.NEEDLE_TRIALS["quick"]
+    assert seen == list(range(10002, 10000 + n))
+    ours = doc["experiments"]["002/tables"]["ours"]
+    assert ours["trials"] == n and ours["overall success (Table II)"] == 100.0
