@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any
@@ -52,6 +53,25 @@ def _dask() -> Any:
                              "'oralnav[cluster]' (or run without --scheduler: a local "
                              "process pool)") from None
     return distributed
+
+
+def _leave_with(owner: int) -> None:
+    """A pool worker's start: it exits once process ``owner`` (the sweep's) is gone. A
+    fork server's workers are not the sweep's children, so a sweep killed outright
+    (SIGTERM, SIGKILL) would otherwise leave them waiting for work forever."""
+    import threading
+
+    def watch() -> None:
+        while True:
+            time.sleep(1.0)
+            try:
+                os.kill(owner, 0)
+            except ProcessLookupError:
+                os._exit(1)
+            except PermissionError:  # alive, another user's: not ours to judge
+                pass
+
+    threading.Thread(target=watch, name="owner-watch", daemon=True).start()
 
 
 def require_dask() -> None:
@@ -90,7 +110,8 @@ class TrialRunner:
                 # OpenMP"), and a report runs such kernels between its sweeps
                 self._pool = ProcessPoolExecutor(
                     max_workers=self.workers,
-                    mp_context=multiprocessing.get_context(_START_METHOD))
+                    mp_context=multiprocessing.get_context(_START_METHOD),
+                    initializer=_leave_with, initargs=(os.getpid(),))
             return
         distributed = _dask()
         if scheduler == "local":

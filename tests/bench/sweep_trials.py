@@ -27,3 +27,22 @@ def dying_trial(item: tuple[int, str]) -> tuple[int, float, float]:
         marker.write_text(str(os.getpid()))
         os._exit(1)
     return fit_trial(seed)
+
+
+def pid_then_wait(seconds: float) -> int:
+    """This worker's process id, after ``seconds`` of waiting (keeps a worker busy)."""
+    import time
+
+    time.sleep(seconds)
+    return os.getpid()
+
+
+def run_pool_forever(pid_file: str) -> None:
+    """Start a two-worker pool, write its workers' ids to ``pid_file``, then block on
+    long trials until killed (the owner a test kills)."""
+    from oralnav.bench.executor import TrialRunner
+
+    with TrialRunner(workers=2) as pool:
+        pids = set(pool.map(pid_then_wait, [0.2, 0.2, 0.2, 0.2]))
+        Path(pid_file).write_text(" ".join(str(p) for p in sorted(pids)))
+        pool.map(pid_then_wait, [600.0, 600.0])

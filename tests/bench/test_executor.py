@@ -93,3 +93,38 @@ def test_a_worker_of_another_build_is_refused(monkeypatch):
         monkeypatch.undo()
         with TrialRunner(lc.scheduler_address) as same:  # the same build is accepted
             assert same.workers == 1
+
+
+def test_pool_workers_leave_with_a_killed_sweep(tmp_path):
+    """A sweep killed outright (SIGKILL: no cleanup runs) leaves no pool worker behind:
+    its workers come from a fork server, not from the sweep, and watch it instead."""
+    import os
+    import subprocess
+    import time
+
+    pid_file = tmp_path / "pids"
+    owner = subprocess.Popen([sys.executable, "-c", "from tests.bench.sweep_trials import "
+                              f"run_pool_forever; run_pool_forever({str(pid_file)!r})"])
+    try:
+        deadline = time.monotonic() + 60
+        while not pid_file.exists() or not pid_file.read_text():
+            assert time.monotonic() < deadline, "the pool never started"
+            assert owner.poll() is None, "the sweep died on its own"
+            time.sleep(0.1)
+        workers = [int(p) for p in pid_file.read_text().split()]
+        assert workers and owner.pid not in workers
+    finally:
+        owner.kill()
+        owner.wait()
+
+    def alive(pid: int) -> bool:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        return True
+
+    deadline = time.monotonic() + 10
+    while any(alive(p) for p in workers) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(alive(p) for p in workers), "pool workers outlived their sweep"
