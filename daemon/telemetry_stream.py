@@ -150,6 +150,11 @@ async def _push_frames(ws: WebSocket, sub: _Subscription, views: LiveViews) -> N
                     views.frame_message, cam, sub.frame_width, sub.frame_quality)
             except NoFrame:
                 continue
+            if shown == sent.get(cam):
+                # the encoder, rate-limited, handed back the frame this client has: ask
+                # again once it may encode the newer one, and never send a frame twice
+                due = min(due, now + 1.0 / views.max_hz)
+                continue
             await ws.send_bytes(msg)
             sent[cam], last[cam] = shown, now
         if due < math.inf:  # a camera waits for its period: the newest frame then

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import struct
 
+import anyio
 import cv2
 import httpx
 import numpy as np
@@ -213,3 +214,28 @@ async def test_telemetry_pushes_each_new_frame_as_a_binary_message(views_rig):
             assert any("frames fps must be a number in [0.1, 30]" in e for e in errors)
             assert any("need the frames topic" in e for e in errors)
             assert any("expected \"frames\"" in e for e in errors), errors
+
+
+async def test_a_rate_limited_encoder_never_sends_a_frame_twice(views_rig):
+    """Item 1 ("each camera's newest frame once"): a round that comes while the encoder
+    may not yet encode again (its 1 / max_hz) brings its frames once the encoder may, and
+    never the previous frames a second time (a loaded machine showed it: left 8, then
+    right 7 again)."""
+    views_rig.views.max_hz = 2.0  # an encode every 0.5 s at most
+    async with running(views_rig.app) as port:
+        url = f"ws://127.0.0.1:{port}/telemetry?token={views_rig.tokens['observer']}"
+        async with websockets.connect(url) as ws:
+            await ws.send(json.dumps({"subscribe": ["frames"],
+                                      "frames": {"fps": 30, "width": 320}}))
+            frames = []
+            with anyio.fail_after(10):
+                while len(frames) < 4:
+                    msg = await ws.recv()
+                    if isinstance(msg, str):
+                        continue
+                    head, _ = _frame(msg)
+                    frames.append((head["camera"], head["counter"]))
+                    if len(frames) == 2:  # at once: within the encoder's 0.5 s
+                        views_rig.views.tap(_round(8, _camera_rig(), _pose()))
+    assert sorted(frames[:2]) == [("left", 7), ("right", 7)], frames
+    assert sorted(frames[2:]) == [("left", 8), ("right", 8)], frames
