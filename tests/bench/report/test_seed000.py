@@ -16,7 +16,7 @@ TINY = {"table1_frames": 3, "fig9_frames": 4, "fig11_frames": 3, "fig11_step_deg
 @pytest.fixture
 def ctx(tmp_path, monkeypatch):
     monkeypatch.setattr(seed000, "QUICK", TINY)
-    return Context(quick=True, charts=tmp_path)
+    return Context(quick=True, charts=tmp_path, workers=1)  # no pool beside the suite
 
 
 def _check(section, ctx):
