@@ -35,6 +35,11 @@ __all__ = ["SchedulerError", "TrialRunner"]
 OnResult = Callable[[int, Any, int, int], None]
 #: s to reach a cluster's scheduler before giving up
 CONNECT_TIMEOUT_S = 10.0
+#: What Dask's nanny sets in a worker's environment that a LocalCluster here leaves out,
+#: so that its workers run as the pool's do (see TrialRunner.__init__; for a cluster
+#: started by hand, bench/README.md "Sweeps on a cluster" says how)
+NANNY_ENV_DROPPED = ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS", "MKL_NUM_THREADS",
+                     "OPENBLAS_NUM_THREADS")
 #: How the local pool starts its workers (see TrialRunner.__init__)
 _START_METHOD = ("forkserver" if "forkserver" in multiprocessing.get_all_start_methods()
                  else "spawn")
@@ -115,9 +120,20 @@ class TrialRunner:
             return
         distributed = _dask()
         if scheduler == "local":
-            self._cluster = distributed.LocalCluster(
-                n_workers=self.workers, threads_per_worker=1, processes=True,
-                silence_logs=logging.WARNING)
+            import dask
+
+            # Dask's nanny starts each worker with MALLOC_TRIM_THRESHOLD_=65536 (and one
+            # BLAS/OpenMP thread): the fixed trim threshold also stops glibc raising its
+            # mmap threshold, so every image-sized buffer a trial allocates is mapped and
+            # faulted in afresh: a needle trial took 23.6 s against 15.3 s (3.5 M page
+            # faults against 0.2 M). The workers get the pool's environment instead.
+            environ = {k: v for k, v in
+                       dask.config.get("distributed.nanny.pre-spawn-environ").items()
+                       if k not in NANNY_ENV_DROPPED}
+            with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+                self._cluster = distributed.LocalCluster(
+                    n_workers=self.workers, threads_per_worker=1, processes=True,
+                    silence_logs=logging.WARNING)
             self._client = distributed.Client(self._cluster)
         else:
             connect_timeout = connect_timeout or CONNECT_TIMEOUT_S

@@ -46,3 +46,9 @@ def run_pool_forever(pid_file: str) -> None:
         pids = set(pool.map(pid_then_wait, [0.2, 0.2, 0.2, 0.2]))
         Path(pid_file).write_text(" ".join(str(p) for p in sorted(pids)))
         pool.map(pid_then_wait, [600.0, 600.0])
+
+
+def worker_environ(_item: object) -> dict[str, str | None]:
+    """What a worker's environment says of malloc's trim threshold and thread counts."""
+    return {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS",
+                                           "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
