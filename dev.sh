@@ -142,9 +142,9 @@ case "$cmd" in
         # CPU-bound tests. Each module stays on one worker (loadscope), so a module's
         # shared fixtures (rendered views, calibrations) are built once: 9:13 against 10:15
         # split test by test, on 2 cores. ORALNAV_TEST_WORKERS=0 runs it in one process.
-        # Then the tests marked "alone" (the hardware-in-the-loop demo: its renderer and
-        # daemon starve beside another worker on 2 cores), with nothing beside them; exit
-        # 5 there means none was selected.
+        # Then the tests marked "alone" (the hardware-in-the-loop demo and the console in a
+        # browser: their renderer and daemon starve beside another worker on 2 cores),
+        # with nothing beside them; exit 5 there means none was selected.
         rc=0 rc_alone=0
         "$VENV/bin/python" -m pytest -n "${ORALNAV_TEST_WORKERS:-auto}" --dist loadscope \
             -m "not alone" "$@" || rc=$?

@@ -95,6 +95,9 @@ def _wait(what: str, check, timeout: float = WAIT_S):
         time.sleep(0.1)
 
 
+# alone: beside the parallel suite on 2 cores the daemon did not reach READY within the
+# 30 s wait in two clean-clone runs on 2026-11-27 (it takes 26 s in all by itself)
+@pytest.mark.alone
 def test_a_surgeon_runs_and_stops_the_procedure_from_the_console(daemon, browser) -> None:
     """Done when (issue 33): a person can run the procedure and stop it from the console
     alone; the screenshot shows the console mid-procedure. Bad input: an observer's click
