@@ -96,6 +96,7 @@ def run_tables(ctx: Context) -> Section:
     """Seed 002's Tables I and II over ``NEEDLE_TRIALS`` held-out trials (module
     docstring)."""
     from oralnav.bench import needle
+    from oralnav.bench.needle_tracking import _plain as plain
 
     n = NEEDLE_TRIALS["quick" if ctx.quick else "full"]
     first, last = NEEDLE_SEED, NEEDLE_SEED + n - 1
@@ -178,7 +179,7 @@ def run_tables(ctx: Context) -> Section:
             "failure_causes": doc["failure_causes"], "paper": paper,
             "target_overall": doc["target_overall"], "records": records}
     return Section("002/tables", "Seed 002 Tables I and II: needle procedure success",
-                   setup, rows, [chart], _plain(data))
+                   setup, rows, [chart], plain(data))
 
 
 def _chart_steps(ctx: Context, counts: dict[str, dict[str, int]], done: int, n: int,
@@ -276,6 +277,7 @@ def run_tracker_rate(ctx: Context) -> Section:
     next experiment's) aborts."""
     from oralnav.bench.executor import TrialRunner
     from oralnav.bench.needle_tracking import TARGET
+    from oralnav.bench.needle_tracking import _plain as plain
 
     size = TRACKER_SIZES["quick" if ctx.quick else "full"]
     seeds = list(range(NEEDLE_SEED, NEEDLE_SEED + size["seeds"]))
@@ -352,7 +354,7 @@ def run_tracker_rate(ctx: Context) -> Section:
             "load_average_start": sec["load_average_start"],
             "load_average_end": sec["load_average_end"]}
     return Section("002/tracker_rate", "Seed 002: needle tracker rate at 3000 particles",
-                   setup, rows, [chart], _plain(data))
+                   setup, rows, [chart], plain(data))
 
 
 def _no_runs(row: dict[str, Any] | None) -> dict[str, Any] | None:
@@ -401,14 +403,6 @@ def _chart_rate(ctx: Context, sec: dict[str, Any], minority: bool) -> str:
                  f"({len(sec['clips']['seeds'])} trials)", fontsize=11)
     fig.tight_layout()
     return save(fig, ctx.chart("002/tracker_rate", "particles"))
-
-
-def _plain(x: Any) -> Any:
-    """JSON-able plain types (numpy values made Python ones, tuples lists, non-finite
-    floats ``None``)."""
-    from oralnav.bench.needle_tracking import _plain as plain
-
-    return plain(x)
 
 
 #: Estimates (s) on the 2-core development machine, 2 workers, load average 2-3: quick

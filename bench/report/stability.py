@@ -66,6 +66,7 @@ def _nav_axis(sweep: str) -> tuple[str, str, float, bool]:
 def run_navigation(ctx: Context) -> Section:
     """The navigation sweeps with each method's breaking point (module docstring)."""
     from oralnav.bench import navigation as nav
+    from oralnav.bench.needle_tracking import _plain as plain
 
     frames = NAV_FRAMES["quick" if ctx.quick else "full"]
     values = NAV_SWEEPS["quick" if ctx.quick else "full"] or nav.SWEEPS
@@ -102,7 +103,7 @@ def run_navigation(ctx: Context) -> Section:
     data = {"frames": frames, "break_mm": nav.BREAK_MM, "methods": list(nav.METHODS),
             "sweeps": {s: doc[s] for s in values}, "chart_marks": marks}
     return Section("stability/navigation", "Stability: navigation methods where they break",
-                   setup, rows, [chart], _plain(data))
+                   setup, rows, [chart], plain(data))
 
 
 def _chart_navigation(ctx: Context, doc: dict[str, Any], values: dict[str, Any],
@@ -176,6 +177,7 @@ _NUISANCES: dict[str, tuple[str, str, str, bool]] = {
 def run_needle_tracker(ctx: Context) -> Section:
     """The needle tracker's loss boundary under three nuisances (module docstring)."""
     from oralnav.bench import needle_tracking as nt
+    from oralnav.bench.needle_tracking import _plain as plain
 
     size = TRACKER_SIZES["quick" if ctx.quick else "full"]
     values = size["values"] or (nt.QUICK_NUISANCES if ctx.quick else nt.NUISANCES)
@@ -224,7 +226,7 @@ def run_needle_tracker(ctx: Context) -> Section:
                        for n in _NUISANCES},
             "seconds": doc.get("seconds"), "chart_marks": marks}
     return Section("stability/needle_tracker", "Stability: where the needle tracker loses "
-                   "the needle", setup, rows, [chart], _plain(data))
+                   "the needle", setup, rows, [chart], plain(data))
 
 
 #: The tracker's boundaries as the chart draws them: which, colour, legend text, style.
@@ -301,14 +303,6 @@ def _chart_tracker(ctx: Context, doc: dict[str, Any]) -> tuple[str, list[dict[st
                  "the needle", fontsize=11)
     fig.tight_layout()
     return save(fig, ctx.chart("stability/needle_tracker", "nuisances")), marks
-
-
-def _plain(x: Any) -> Any:
-    """JSON-able plain types (numpy values made Python ones, tuples lists, non-finite
-    floats ``None``)."""
-    from oralnav.bench.needle_tracking import _plain as plain
-
-    return plain(x)
 
 
 #: Estimates (s) on the 2-core development machine, 2 workers, load average 2-3: quick
