@@ -21,6 +21,7 @@ loses no trial: the scheduler runs its trials again elsewhere, and each comes ba
 
 from __future__ import annotations
 
+import copy
 import logging
 import multiprocessing
 import os
@@ -28,6 +29,8 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 __all__ = ["SchedulerError", "TrialRunner"]
 
@@ -40,6 +43,9 @@ CONNECT_TIMEOUT_S = 10.0
 #: started by hand, bench/README.md "Sweeps on a cluster" says how)
 NANNY_ENV_DROPPED = ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS", "MKL_NUM_THREADS",
                      "OPENBLAS_NUM_THREADS")
+#: The Dask setting of a worker's statistical profiler, off on the LocalCluster started
+#: here (see TrialRunner.__init__; bench/README.md "Sweeps on a cluster" for one by hand)
+WORKER_PROFILER = "distributed.worker.profile.enabled"
 #: How the local pool starts its workers (see TrialRunner.__init__)
 _START_METHOD = ("forkserver" if "forkserver" in multiprocessing.get_all_start_methods()
                  else "spawn")
@@ -93,6 +99,17 @@ def oralnav_build() -> str:
     return f"{__version__} ({commit()})"
 
 
+def worker_profiles(_item: object = None, dask_worker: Any = None) -> bool:
+    """On a Dask worker (as a task, or through ``Client.run``, which passes
+    ``dask_worker``): whether its statistical profiler samples the running trials
+    (``WORKER_PROFILER``), which costs a needle trial about a quarter of its time."""
+    if dask_worker is None:
+        from distributed import get_worker
+
+        dask_worker = get_worker()
+    return "profile" in dask_worker.periodic_callbacks
+
+
 class TrialRunner:
     """Runs trials on the engine named by ``scheduler`` (module docstring) with
     ``workers`` processes where it starts them (default one per CPU). A context manager:
@@ -130,10 +147,19 @@ class TrialRunner:
             environ = {k: v for k, v in
                        dask.config.get("distributed.nanny.pre-spawn-environ").items()
                        if k not in NANNY_ENV_DROPPED}
-            with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+            # The worker's statistical profiler walks the running trial's stack every
+            # 10 ms from the event loop's thread, and each walk takes the GIL from the
+            # trial: a needle trial took 20.0-24.8 s with it and 17.3-19.7 s without, the
+            # pool's 18.1-19.0 s (seed 10001, one worker, alternated). The dashboard's
+            # profile page is the price.
+            with dask.config.set({"distributed.nanny.pre-spawn-environ": environ,
+                                  WORKER_PROFILER: False}):
+                # each nanny gets a whole copy of these settings: it keeps only a
+                # shallow merge of the global ones, which the end of this block would
+                # undo for a worker it restarts (one restarted after a crash profiled)
                 self._cluster = distributed.LocalCluster(
                     n_workers=self.workers, threads_per_worker=1, processes=True,
-                    silence_logs=logging.WARNING)
+                    silence_logs=logging.WARNING, config=copy.deepcopy(dask.config.config))
             self._client = distributed.Client(self._cluster)
         else:
             connect_timeout = connect_timeout or CONNECT_TIMEOUT_S
@@ -158,6 +184,12 @@ class TrialRunner:
             raise SchedulerError(f"the cluster at {self.scheduler!r} has workers with another "
                                  f"oralnav: {listed}; this process runs {mine}. Install the "
                                  "same commit on every worker and restart them")
+        profiling = sorted(a for a, on in self._client.run(worker_profiles).items() if on)
+        if profiling:
+            log.warning("%d of the cluster's workers run Dask's profiler, which slows a "
+                        "needle trial by about a quarter: start them with "
+                        "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False (%s)",
+                        len(profiling), ", ".join(profiling))
 
     @property
     def name(self) -> str:

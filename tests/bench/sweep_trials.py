@@ -52,3 +52,4 @@ def worker_environ(_item: object) -> dict[str, str | None]:
     """What a worker's environment says of malloc's trim threshold and thread counts."""
     return {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS",
                                            "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+

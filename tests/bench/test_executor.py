@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from oralnav.bench.executor import SchedulerError, TrialRunner
+from oralnav.bench.executor import SchedulerError, TrialRunner, worker_profiles
 
 from .sweep_trials import dying_trial, fit_trial, worker_environ
 
@@ -80,9 +80,11 @@ def build_seen_from_worker_thread() -> str:
             else "0.0.9 (bbbb)")
 
 
-def test_a_worker_of_another_build_is_refused(monkeypatch):
+def test_a_worker_of_another_build_is_refused(monkeypatch, caplog):
     """Issue 35, bad input: a cluster whose worker runs another oralnav is refused, the
-    message naming both builds (trials of other code would not be the same trials)."""
+    message naming both builds (trials of other code would not be the same trials). A
+    cluster of the same build whose workers profile their tasks is used, with a warning
+    saying how to start them without (the profiler costs a trial about a quarter)."""
     from oralnav.bench import executor
 
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
@@ -93,6 +95,7 @@ def test_a_worker_of_another_build_is_refused(monkeypatch):
         monkeypatch.undo()
         with TrialRunner(lc.scheduler_address) as same:  # the same build is accepted
             assert same.workers == 1
+        assert "PROFILE__ENABLED=False" in caplog.text
 
 
 def test_pool_workers_leave_with_a_killed_sweep(tmp_path):
@@ -140,3 +143,20 @@ def test_local_cluster_workers_run_in_the_pools_environment(cluster):
     for got in cluster.map(worker_environ, [0, 1]):
         assert got["MALLOC_TRIM_THRESHOLD_"] == os.environ.get("MALLOC_TRIM_THRESHOLD_")
         assert got == here
+
+
+def test_local_cluster_workers_do_not_profile_the_trials(cluster, tmp_path):
+    """Issue 35 target (LocalCluster within 10 % of the pool): Dask's statistical profiler
+    takes the GIL from the trial every 10 ms (a needle trial 20.0-24.8 s with it against
+    17.3-19.7 s without); the LocalCluster's workers run without it, and so does a worker
+    restarted after a crash, with the pool's environment too."""
+    import time
+
+    cluster.map(dying_trial, [(s, str(tmp_path)) for s in range(4)])  # one worker dies
+    assert (tmp_path / "died").exists()
+    client = cluster._client
+    deadline = time.monotonic() + 30
+    while len(client.scheduler_info()["workers"]) < 2 and time.monotonic() < deadline:
+        time.sleep(0.1)  # the nanny restarts the dead worker
+    assert list(client.run(worker_profiles).values()) == [False, False]
+    assert list(client.run(worker_environ, None).values()) == [worker_environ(None)] * 2
