@@ -27,20 +27,29 @@ def describe(**versions: Any) -> dict[str, Any]:
             **versions}
 
 
-def commit() -> str:
-    """The git commit of the installed oralnav source (``+dirty`` with uncommitted changes),
-    or ``"unknown (oralnav <version>)"`` outside a git checkout."""
+def commit(where: Path | None = None) -> str:
+    """The git commit of the installed oralnav source (or of the checkout holding
+    ``where``), or ``"unknown (oralnav <version>)"``
+    outside a git checkout. With uncommitted changes to tracked files it is
+    ``<commit>+dirty.<digest>``, the digest (12 hex digits) that of the changes themselves:
+    two trees with different edits on one commit are two builds (a resumed report or a
+    cluster's workers must not mix their results)."""
+    import hashlib
     import subprocess
 
     from oralnav import __version__
 
-    here = Path(__file__).resolve().parent
+    here = where or Path(__file__).resolve().parent
+
+    def git(*args: str) -> bytes:
+        return subprocess.run(["git", "-C", str(here), *args], check=True,
+                              capture_output=True, timeout=10).stdout
+
     try:
-        head = subprocess.run(["git", "-C", str(here), "rev-parse", "HEAD"], check=True,
-                              capture_output=True, text=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(here), "status", "--porcelain",
-                                "--untracked-files=no"], check=True, capture_output=True,
-                               text=True, timeout=10).stdout.strip()
+        head = git("rev-parse", "HEAD").decode().strip()
+        changes = git("diff", "HEAD", "--no-ext-diff", "--binary")
     except (OSError, subprocess.SubprocessError):
         return f"unknown (oralnav {__version__})"
-    return head + ("+dirty" if dirty else "")
+    if not changes.strip():
+        return head
+    return f"{head}+dirty.{hashlib.sha1(changes).hexdigest()[:12]}"
