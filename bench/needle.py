@@ -51,6 +51,43 @@ PAPER = {"trials": 20, "overall": 0.70,
                         "NP": 14 / 14}}
 
 
+#: The needle procedure's seed ranges (issue 36; docs/needle.md, "Development and
+#: validation seeds"). Changes are developed and tuned on the development seeds (inclusive),
+#: and success is reported on the validation range, which no change is tuned on.
+DEVELOPMENT_SEEDS = (0, 999)
+#: The first validation seed, and the validation Monte Carlo's size.
+VALIDATION_SEED = 1_000_000
+VALIDATION_TRIALS = 400
+#: Confidence of the intervals reported with a success rate.
+CONFIDENCE = 0.95
+
+
+def seed_split(first: int, last: int) -> str:
+    """Which range seeds ``first``-``last`` (inclusive) lie in: ``"development"``,
+    ``"validation"``, ``"mixed"`` when they reach into the development seeds and beyond,
+    or ``"held out"`` (neither: seeds no change was tuned on, outside the validation
+    range)."""
+    lo, hi = DEVELOPMENT_SEEDS
+    if lo <= first and last <= hi:
+        return "development"
+    if first <= hi and last >= lo:
+        return "mixed"
+    return "validation" if first >= VALIDATION_SEED else "held out"
+
+
+def wilson(k: int, n: int) -> tuple[float, float]:
+    """The Wilson score interval (``CONFIDENCE``) of ``k`` successes in ``n`` trials, as
+    fractions; ``(nan, nan)`` for no trial."""
+    import math
+
+    from scipy.stats import binomtest
+
+    if n < 1:
+        return math.nan, math.nan
+    ci = binomtest(k, n).proportion_ci(confidence_level=CONFIDENCE, method="wilson")
+    return float(ci.low), float(ci.high)
+
+
 #: Causes by which a step reports that the one before, which believed itself done,
 #: failed: NR checks the drive once the jaws are off the needle, NP shows whether the
 #: regrasp holds by pulling.
@@ -183,7 +220,10 @@ def run(trials: int, seed: int, workers: int | None = None,
     records = [kept[s] if s in kept else ran[s] for s in seeds]
     rates = step_rates(records)
     causes = Counter(r["failure"]["cause"] for r in records if r["failure"])
+    succeeded = sum(all(v is True for v in r["steps"].values()) for r in records)
     return {"bench": "needle", "trials": rates["trials"], "overall": rates["overall"],
+            "overall_interval": list(wilson(succeeded, len(records))),
+            "split": seed_split(seeds[0], seeds[-1]),
             "steps": rates["steps"], "individual": rates["individual"],
             "failures": classify(records), "failure_causes": dict(causes),
             "paper": PAPER, "target_overall": 0.90, "seed": seed,
@@ -200,15 +240,23 @@ def summary(doc: dict[str, Any]) -> dict[str, Any]:
 
 
 def main(out: Path, quick: bool = False, trials: int | None = None, seed: int = 0,
-         workers: int | None = None, scheduler: str | None = None) -> dict[str, Any]:
-    """Run the Monte Carlo (``quick``: 10 trials, else 200 unless ``trials`` is given) and
-    write ``needle.json`` into ``out``."""
-    n = trials if trials is not None else (10 if quick else 200)
+         workers: int | None = None, scheduler: str | None = None,
+         validation: bool = False) -> dict[str, Any]:
+    """Run the Monte Carlo (``quick``: 10 trials, ``validation``: ``VALIDATION_TRIALS``
+    from ``VALIDATION_SEED``, else 200 unless ``trials`` is given) and write
+    ``needle.json`` into ``out``."""
+    if validation:
+        seed = VALIDATION_SEED
+    n = trials if trials is not None else (
+        10 if quick else VALIDATION_TRIALS if validation else 200)
     doc = run(n, seed, workers, scheduler=scheduler)
     out.mkdir(parents=True, exist_ok=True)
     (out / "needle.json").write_text(json.dumps(doc, indent=1) + "\n")
-    print(f"needle: {doc['trials']} trials, overall {100 * doc['overall']:.1f} % "
-          f"(seed 002: {100 * PAPER['overall']:.0f} % of {PAPER['trials']}); per step "
+    lo, hi = doc["overall_interval"]
+    print(f"needle: {doc['trials']} trials on {doc['split']} seeds {seed}-{seed + n - 1}, "
+          f"overall {100 * doc['overall']:.1f} % ({100 * CONFIDENCE:.0f} % interval "
+          f"{100 * lo:.1f}-{100 * hi:.1f} %; "
+          f"seed 002: {100 * PAPER['overall']:.0f} % of {PAPER['trials']}); per step "
           + ", ".join(f"{k} {100 * v:.1f} %" for k, v in doc["steps"].items()),
           file=sys.stderr)
     for f in doc["failures"]:

@@ -16,8 +16,8 @@
     oralnav plan place --scene FILE [--figures DIR] [--json]
     oralnav replay FILE.mcap [--json]
     oralnav bench navigation|control|calibration|planning [--quick] --out DIR
-    oralnav bench needle [--trials N] [--seed S] [--workers W] [--scheduler ADDRESS]
-                         [--quick] [--tracking]
+    oralnav bench needle [--trials N] [--seed S | --validation] [--workers W]
+                         [--scheduler ADDRESS] [--quick] [--tracking]
                          --out DIR [--json]
     oralnav bench faults [--quick] --out DIR [--json]
     oralnav bench busy-demo --out DIR [--runs N] [--busy N] [--json]
@@ -439,22 +439,27 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
         raise UsageError(f"--trials must be at least 1, got {args.trials}")
     if args.workers is not None and args.workers < 1:
         raise UsageError(f"--workers must be at least 1, got {args.workers}")
+    if args.validation and (args.seed is not None or args.quick):
+        raise UsageError("--validation runs the validation seeds from "
+                         f"{needle.VALIDATION_SEED}: give it without --seed or --quick")
     from oralnav.bench.executor import SchedulerError
 
     try:
         doc = needle.main(Path(args.out), quick=args.quick, trials=args.trials,
-                          seed=args.seed, workers=args.workers, scheduler=args.scheduler)
+                          seed=args.seed or 0, workers=args.workers,
+                          scheduler=args.scheduler, validation=args.validation)
     except SchedulerError as exc:
         raise UsageError(str(exc)) from None
     s = needle.summary(doc)
-    _emit(args, s, f"{s['trials']} trials: overall {100 * s['overall']:.1f} %; "
+    _emit(args, s, f"{s['trials']} trials on {doc['split']} seeds: "
+                   f"overall {100 * s['overall']:.1f} %; "
                    + ", ".join(f"{k} {100 * v:.1f} %" for k, v in s["steps"].items())
                    + f" (details in {Path(args.out) / 'needle.json'})")
     if args.tracking:
         from oralnav.bench import needle_tracking
 
         # the speed/accuracy chart goes to the same folder; its summary to stderr
-        needle_tracking.main(Path(args.out), quick=args.quick, seed=args.seed)
+        needle_tracking.main(Path(args.out), quick=args.quick, seed=args.seed or 0)
     return 0
 
 
@@ -703,7 +708,11 @@ def build_parser() -> argparse.ArgumentParser:
                                       "failures by cause (about 5 s a trial per core)")
     nd.add_argument("--trials", type=int, default=None,
                     help="number of trials (default 200; 10 with --quick)")
-    nd.add_argument("--seed", type=int, default=0, help="first trial's seed (default 0)")
+    nd.add_argument("--seed", type=int, default=None,
+                    help="first trial's seed (default 0; seeds 0-999 are for development)")
+    nd.add_argument("--validation", action="store_true",
+                    help="the validation Monte Carlo: 400 trials (or --trials) on seeds from "
+                         "1,000,000, which no change is tuned on (docs/needle.md)")
     nd.add_argument("--workers", type=int, default=None,
                     help="processes (default: one per CPU)")
     nd.add_argument("--scheduler", default=None, metavar="ADDRESS",

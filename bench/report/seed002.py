@@ -19,17 +19,18 @@ import os
 import time
 from typing import Any
 
+from oralnav.bench.needle import CONFIDENCE, DEVELOPMENT_SEEDS, VALIDATION_SEED, wilson
 from oralnav.bench.report.charts import mark_minority, plt, save
 from oralnav.bench.report.context import Context, Experiment
 from oralnav.bench.report.section import Row, Section, Target
 
 __all__ = ["EXPERIMENTS", "NEEDLE_SEED", "NEEDLE_TRIALS", "TRACKER_SIZES", "wilson"]
 
-#: The first seed of the needle Monte Carlo. The procedure was developed and tuned on
-#: seeds 0-199 (issue 7's 200-trial bench); the report's trials start far above them.
-NEEDLE_SEED = 10000
-#: The seeds the procedure was developed on (inclusive), which the report must not use.
-DEVELOPED_ON = (0, 199)
+#: The first seed of the needle Monte Carlo: the validation range (bench/needle.py;
+#: docs/needle.md, "Development and validation seeds"), which no change is tuned on.
+NEEDLE_SEED = VALIDATION_SEED
+#: The seeds the procedure is developed on (inclusive), which the report must not use.
+DEVELOPED_ON = DEVELOPMENT_SEEDS
 #: Needle trials: quick (what fits ``--quick``'s budget on the shared 2-core machine:
 #: 15-40 s a trial by its load, two at a time) and full (issue 35: >= 400).
 NEEDLE_TRIALS = {"quick": 8, "full": 400}
@@ -46,18 +47,6 @@ TRACKER_SIZES: dict[str, dict[str, Any]] = {
 RATE_WORKERS = 2
 #: The paper's tracking rate with 3000 particles on its GPU (frames per second).
 PAPER_FPS = 3.0
-CONFIDENCE = 0.95
-
-
-def wilson(k: int, n: int) -> tuple[float, float]:
-    """The 95 % Wilson score interval of ``k`` successes in ``n`` trials (fractions);
-    ``(nan, nan)`` for no trial."""
-    from scipy.stats import binomtest
-
-    if n < 1:
-        return math.nan, math.nan
-    ci = binomtest(k, n).proportion_ci(confidence_level=CONFIDENCE, method="wilson")
-    return float(ci.low), float(ci.high)
 
 
 def _interval_note(k: int, n: int) -> str:
@@ -120,7 +109,7 @@ def run_tables(ctx: Context) -> Section:
     # rather than failing the section on a size it chose
     rows = [Row("trials", "trials", paper["trials"], float(doc["trials"]),
                 None if ctx.quick else Target(">=", TRIALS_TARGET, "issue 35"),
-                note=f"seeds {first}-{last}; the procedure was developed on seeds "
+                note=f"validation seeds {first}-{last}; changes are developed on seeds "
                      f"{DEVELOPED_ON[0]}-{DEVELOPED_ON[1]}"
                      + (f"; the full report runs {TRIALS_TARGET}" if ctx.quick else ""))]
     for st, c in counts.items():
@@ -163,10 +152,11 @@ def run_tables(ctx: Context) -> Section:
         f"failed one counts as failed) and over the trials that reached it. Ours: the "
         f"same procedure in simulation on randomised trial cells (a tilted tissue pad "
         f"with a drawn incision, a threaded CT-1 needle lying at random, two RCM arms, "
-        f"random light, blur and noise), {n} trials on seeds {first}-{last}: none of the "
-        f"seeds {DEVELOPED_ON[0]}-{DEVELOPED_ON[1]} the procedure was developed and tuned "
-        f"on. A step succeeds only if the procedure saw it succeed and the simulator's "
-        f"truth agrees. Intervals are 95 % Wilson score intervals. The trials ran on "
+        f"random light, blur and noise), {n} trials on the validation seeds {first}-{last}, "
+        f"which no change is tuned on (changes are developed on seeds "
+        f"{DEVELOPED_ON[0]}-{DEVELOPED_ON[1]}; docs/needle.md). A step succeeds only if "
+        f"the procedure saw it succeed and the simulator's truth agrees. Intervals are "
+        f"95 % Wilson score intervals. The trials ran on "
         f"{doc['machine']['engine']}, a trial a pure function of its seed.")
     data = {"seeds": [first, last], "developed_on": list(DEVELOPED_ON),
             "trials": n, "engine": doc["machine"]["engine"], "machine": doc["machine"],

@@ -127,7 +127,8 @@ def test_bench_needle_tracking_flag_runs_the_tracking_chart(tmp_path, capsys, mo
     calls = []
     steps = {k: 0.5 for k in ("NG", "NH", "ND", "NR", "NP")}
     monkeypatch.setattr(needle, "main", lambda out, **kw: calls.append(("mc", out, kw))
-                        or {"trials": 2, "overall": 0.5, "steps": steps})
+                        or {"trials": 2, "overall": 0.5, "steps": steps,
+                            "split": "development"})
     monkeypatch.setattr(needle_tracking, "main",
                         lambda out, **kw: calls.append(("tracking", out, kw)) or {})
     assert cli.run(["bench", "needle", "--trials", "2", "--seed", "7", "--quick",
@@ -138,6 +139,28 @@ def test_bench_needle_tracking_flag_runs_the_tracking_chart(tmp_path, capsys, mo
     calls.clear()
     assert cli.run(["bench", "needle", "--trials", "2", "--out", str(tmp_path)]) == 0
     assert [c[0] for c in calls] == ["mc"]
+    assert calls[0][2]["seed"] == 0 and calls[0][2]["validation"] is False
+
+
+def test_bench_needle_validation_runs_the_validation_seeds(tmp_path, capsys, monkeypatch):
+    """Issue 36 item 2: `oralnav bench needle --validation` asks for the validation Monte
+    Carlo; with --seed or --quick it is bad input (exit 2, naming the range) and runs
+    nothing."""
+    from oralnav.bench import needle
+
+    calls = []
+    steps = {k: 1.0 for k in ("NG", "NH", "ND", "NR", "NP")}
+    monkeypatch.setattr(needle, "main", lambda out, **kw: calls.append(kw)
+                        or {"trials": 400, "overall": 1.0, "steps": steps,
+                            "split": "validation"})
+    assert cli.run(["bench", "needle", "--validation", "--out", str(tmp_path)]) == 0
+    assert calls[0]["validation"] is True and calls[0]["trials"] is None
+    assert "400 trials on validation seeds" in capsys.readouterr().out
+    for extra in (["--seed", "5"], ["--quick"]):
+        assert cli.run(["bench", "needle", "--validation", *extra, "--out", str(tmp_path),
+                        "--json"]) == 2
+        assert "1000000" in _one_json(capsys)["error"]
+    assert len(calls) == 1
 
 
 def test_bench_needle_bad_counts_exit_2_naming_the_option(tmp_path, capsys):

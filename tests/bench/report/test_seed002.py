@@ -42,11 +42,11 @@ def _record(seed: int, fail_at: str | None, cause: str = "grasp_missed") -> dict
 
 @pytest.fixture
 def trials(monkeypatch):
-    """A stand-in trial: 10001 fails at NR (exit missed), 10002 and 10003 at NG (refused),
-    every other seed succeeds; the seeds it ran are recorded."""
+    """A stand-in trial: 1000001 fails at NR (exit missed), 1000002 and 1000003 at NG
+    (refused), every other seed succeeds; the seeds it ran are recorded."""
     seen: list[int] = []
-    fails = {10001: ("NR", "exit_missed"), 10002: ("NG", "refused_not_converged"),
-             10003: ("NG", "refused_not_converged")}
+    fails = {1000001: ("NR", "exit_missed"), 1000002: ("NG", "refused_not_converged"),
+             1000003: ("NG", "refused_not_converged")}
 
     def fake(seed: int) -> dict:
         seen.append(seed)
@@ -68,16 +68,17 @@ def _rows(section) -> dict[str, dict]:
 
 
 def test_needle_tables_run_on_held_out_seeds_with_intervals(trials, ctx):
-    """Issue 35 needle target: the trials are seeds 10000 up, none of the 0-199 the
-    procedure was developed on, and the section says so; every rate has its 95 % Wilson
-    interval (1 of 4 overall: 4.6-69.9 %); failures are listed by cause; a step reached by
-    fewer than half the trials is flagged as a minority figure; the chart is written."""
+    """Issue 35 needle target and issue 36's split: the trials are the validation seeds
+    from 1,000,000 up, none of the development seeds 0-999, and the section says so;
+    every rate has its 95 % Wilson interval (1 of 4 overall: 4.6-69.9 %); failures are
+    listed by cause; a step reached by fewer than half the trials is flagged as a
+    minority figure; the chart is written."""
     sec = seed002.run_tables(ctx)
-    assert trials and sorted(trials) == [10000, 10001, 10002, 10003]
+    assert trials and sorted(trials) == [1000000, 1000001, 1000002, 1000003]
     assert min(trials) > seed002.DEVELOPED_ON[1]
     d = sec.as_dict()
-    assert d["data"]["seeds"] == [10000, 10003] and d["data"]["developed_on"] == [0, 199]
-    assert "10000-10003" in d["setup"] and "0-199" in d["setup"]
+    assert d["data"]["seeds"] == [1000000, 1000003] and d["data"]["developed_on"] == [0, 999]
+    assert "validation seeds 1000000-1000003" in d["setup"] and "0-999" in d["setup"]
     lo, hi = d["data"]["intervals"]["overall"]["overall"]
     assert lo == pytest.approx(0.0456, abs=5e-4) and hi == pytest.approx(0.6994, abs=5e-4)
     rows = _rows(sec)
@@ -113,16 +114,16 @@ def test_needle_tables_verdicts_are_computed(trials, ctx, monkeypatch):
     assert _rows(full)["trials"]["verdict"] == "missed"
     assert full.as_dict()["verdict"] == "missed"
     monkeypatch.setattr(needle, "run_trial",
-                        lambda seed: _record(seed, None if seed == 10000 else "NH"))
+                        lambda seed: _record(seed, None if seed == 1000000 else "NH"))
     bad = _rows(seed002.run_tables(ctx))
     assert bad["overall success (Table II)"]["verdict"] == "missed"
 
 
 def test_needle_tables_refuse_the_development_seeds(trials, ctx, monkeypatch):
-    """Issue 35 needle target: a seed range that overlaps 0-199 is refused before any
-    trial runs."""
-    monkeypatch.setattr(seed002, "NEEDLE_SEED", 150)
-    with pytest.raises(ValueError, match="0-199"):
+    """Issue 35 needle target, issue 36's split: a seed range that overlaps the
+    development seeds 0-999 is refused before any trial runs."""
+    monkeypatch.setattr(seed002, "NEEDLE_SEED", 998)
+    with pytest.raises(ValueError, match="0-999"):
         seed002.run_tables(ctx)
     assert trials == []
 
@@ -149,7 +150,7 @@ def test_tracker_rate_pairs_the_paper_fps_with_ours(ctx, monkeypatch):
     assert rows["orientation error, 3000 particles (median)"]["target"]["value"] == 2.0
     d = sec.as_dict()
     assert [r["particles"] for r in d["data"]["sweep"]] == [100, 3000]
-    assert d["data"]["seeds"] == [10000]
+    assert d["data"]["seeds"] == [1000000]
     assert (ctx.charts / d["charts"][0]).read_bytes()[:8] == PNG
     json.dumps(d)
 
@@ -164,7 +165,7 @@ def test_an_interrupted_monte_carlo_resumes_its_trials(tmp_path, ctx, monkeypatc
     seen: list[int] = []
 
     def stops_at_10002(seed: int) -> dict:
-        if seed == 10002:
+        if seed == 1000002:
             raise KeyboardInterrupt
         seen.append(seed)
         return _record(seed, None)
@@ -173,9 +174,9 @@ def test_an_interrupted_monte_carlo_resumes_its_trials(tmp_path, ctx, monkeypatc
     exp = next(e for e in seed002.EXPERIMENTS if e.key == "002/tables")
     with pytest.raises(KeyboardInterrupt):
         run_report(tmp_path / "r", [exp], Settings(quick=True, workers=1))
-    assert seen == [10000, 10001]
+    assert seen == [1000000, 1000001]
     assert sorted(p.name for p in (tmp_path / "r" / "trials" / "002_tables").iterdir()) == [
-        "10000.json", "10001.json"]
+        "1000000.json", "1000001.json"]
 
     def fine(seed: int) -> dict:
         seen.append(seed)
@@ -185,6 +186,6 @@ def test_an_interrupted_monte_carlo_resumes_its_trials(tmp_path, ctx, monkeypatc
     seen.clear()
     doc = run_report(tmp_path / "r", [exp], Settings(quick=True, workers=1))
     n = seed002.NEEDLE_TRIALS["quick"]
-    assert seen == list(range(10002, 10000 + n))
+    assert seen == list(range(1000002, 1000000 + n))
     ours = doc["experiments"]["002/tables"]["ours"]
     assert ours["trials"] == n and ours["overall success (Table II)"] == 100.0
