@@ -34,13 +34,24 @@ from oralnav.sim.errors import SimError
 from oralnav.sim.peers.gige_render import RenderedGvCamera
 from oralnav.sim.world.cell import CellConfig, SimCell
 
-__all__ = ["STAMP_TOLERANCE_S", "CellCameras"]
+__all__ = ["STAMP_TOLERANCE_S", "CellCameras", "capture_at"]
 
 #: s: how far a frame's stamp, read back from the cameras' timestamps, may lie from its
 #: capture instant (two host clocks read at render and at arrival: microseconds)
 STAMP_TOLERANCE_S = 1e-3
 
 log = logging.getLogger(__name__)
+
+
+def capture_at(instants: list[float], t: float,
+               tolerance: float = STAMP_TOLERANCE_S) -> int | None:
+    """The index of the newest capture at or before ``t`` among ``instants`` (s,
+    increasing), or None when all are later. A frame's stamp comes back from the cameras'
+    PTP time within microseconds of its capture, either side, so a capture up to
+    ``tolerance`` after ``t`` is the one ``t`` stamps, never the one before it (a frame
+    period earlier, whose truth would be a whole frame's motion off)."""
+    i = bisect.bisect_right(instants, t + tolerance)
+    return None if i == 0 else i - 1
 
 
 class _Capture:
@@ -169,13 +180,10 @@ class CellCameras:
         if t is None:
             when, truth = items[-1]
         else:
-            # a frame's stamp comes back from the cameras' PTP time within microseconds
-            # of its capture, either side: the capture "at" t is the one within
-            # STAMP_TOLERANCE_S after it too, never the one before (a frame period earlier)
-            i = bisect.bisect_right([w for w, _ in items], t + STAMP_TOLERANCE_S)
-            if i == 0:
+            i = capture_at([w for w, _ in items], t)
+            if i is None:
                 raise SimError(f"no capture kept at or before {t:.6f} s (the oldest is "
                                f"{items[0][0]:.6f} s)")
-            when, truth = items[i - 1]
+            when, truth = items[i]
         return {"time": when, "T_B_tcp": truth["T_B_tcp"], "T_B_E": truth["T_B_E"],
                 "q": truth["q"], "targets_B": self.cell.targets_B()}
