@@ -469,6 +469,22 @@ def cmd_stereo(args: argparse.Namespace) -> int:
                                                "rms_right_px": names[1] + " px"}))
 
 
+def _fit_quality(args: argparse.Namespace, kind: str, doc: dict) -> dict[str, Any]:
+    """What the calibration file keeps of how the fit chose its views: the views used,
+    the outlier rule with its limit (px; absent with ``none``) and the fewest views it
+    accepted, so that a file can be fitted again the same way."""
+    from oralnav.control.calibration.cameras import MIN_STEREO_VIEWS, MIN_VIEWS
+
+    quality: dict[str, Any] = {
+        "used_views": [float(i) for i in doc.get("used", [])],
+        "outlier_rule": doc["reject"],
+        "min_views": float(args.min_views if args.min_views is not None
+                           else MIN_STEREO_VIEWS if kind == "stereo" else MIN_VIEWS)}
+    if doc.get("limit_px") is not None:
+        quality["outlier_limit_px"] = float(doc["limit_px"])
+    return quality
+
+
 def _rig_result(args: argparse.Namespace, kind: str, rig, doc: dict, n: int, digest: bytes,
                 text: str) -> int:
     from oralnav.config.rig import save_rig_as
@@ -482,7 +498,7 @@ def _rig_result(args: argparse.Namespace, kind: str, rig, doc: dict, n: int, dig
                                                                   or f"{args.left}, {args.right}")),
                       residuals={"rms_px": float(doc["rms_px"]),
                                  "per_view_rms_px": per_view.ravel().tolist()},
-                      quality={"used_views": [float(i) for i in doc.get("used", [])]})
+                      quality=_fit_quality(args, kind, doc))
     if args.rig_out:  # first: a format that cannot hold the rig refuses before any write
         save_rig_as(rig, args.rig_out, args.rig_out_format)
         _progress(f"wrote rig file {args.rig_out} ({args.rig_out_format})")

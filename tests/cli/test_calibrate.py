@@ -361,7 +361,8 @@ def test_opencv_sample_one_camera_with_reject_none_is_stock_opencv(opencv_refere
     """Issue 34 items 3-4: `oralnav calibrate camera` on the sample's left images alone;
     with --reject none every view is used and fx, fy, cx, cy lie within OpenCV's
     leave-one-out spread of stock OpenCV (the detectors differ, the solver does not);
-    --min-views 14 is more than the 13 images and is refused (exit 2, nothing written)."""
+    --min-views 14 is more than the 13 images and is refused (exit 2, nothing written);
+    the file of an accepted fit records its outlier rule and view floor."""
     lf, _, fields = _sample_folders(tmp_path)
     base = ["calibrate", "camera", "--images", str(lf), "--fields", str(fields), "--board",
             "sample", "--json"]
@@ -375,6 +376,12 @@ def test_opencv_sample_one_camera_with_reject_none_is_stock_opencv(opencv_refere
     out = tmp_path / "cam.toml"
     assert cli.run([*base, "--min-views", "14", "--out", str(out), "--cell", "c"]) == 2
     assert "need at least 14" in _json(capsys)["error"] and not out.exists()
+    assert cli.run([*base, "--reject", "none", "--min-views", "13", "--out", str(out),
+                    "--cell", "c"]) == 0
+    capsys.readouterr()
+    quality = load_calibration(out, kind="camera").quality
+    assert quality["outlier_rule"] == "none" and quality["min_views"] == 13
+    assert "outlier_limit_px" not in quality and len(quality["used_views"]) == 13
 
 
 @pytest.mark.parametrize("rule,reason", [("median", "not a term NAME:VALUE"),
