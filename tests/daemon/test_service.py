@@ -71,8 +71,11 @@ rig = "{config_dir}/rigs/stereo.toml"
 fields = "{config_dir}/fields/cell.toml"
 [safety]
 driver_silence = 0.5
+# the busy-machine tolerances of config/sim.toml (why there): with 10 late periods in a
+# row the 500 Hz loop, at normal scheduling beside the suite's workers, faulted on
+# deadline:misses in a clean-clone run while this test waited for READY
 max_period_lateness = 0.1
-deadline_misses = 10
+deadline_misses = 100
 # the simulated GigE cameras send 10 frames/s, rendered on the same 2 loaded cores: a
 # 0.2 s stall (the default) is two frames late, which a busy test run reaches
 camera_stall = 1.0
