@@ -10,7 +10,9 @@ refused before moving, a step out of turn (the procedure's
 :class:`~oralnav.control.errors.StepOrderError`, with its message), a step while the safety
 state forbids motion, and a second step while one runs are
 :class:`~oralnav.safety.errors.StateError` (409) and change nothing; a step that ran
-answers its result, failed or not.
+answers its result, failed or not. A stop that comes while a step runs halts the arm
+within one motion increment (:class:`StoppableCell`), and the step fails
+(``move_stopped``, naming the safety state).
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ import logging
 import threading
 from collections.abc import Callable
 from typing import Any
+
+import numpy as np
 
 from oralnav.control.errors import StepOrderError
 from oralnav.control.needle.procedure import (
@@ -30,6 +34,41 @@ from oralnav.control.needle.procedure import (
 from oralnav.safety.errors import StateError
 
 log = logging.getLogger(__name__)
+
+
+class StoppableCell:
+    """The needle cell as the daemon's steps move it: before every jaw action, and after
+    every increment of a move (1 mm, 2 deg: ``NeedleCell.move``'s steps), it asks
+    ``motion_refused()`` whether motion is still allowed. A stop that comes while a step
+    runs (an e-stop, a fault, a pause) ends the motion where it is, within one increment:
+    the cell's ``CellError`` naming the safety state, which the step reports as
+    ``move_stopped``. Everything else is the cell's own (attributes are passed through)."""
+
+    def __init__(self, cell: Any, motion_refused: Callable[[], str]) -> None:
+        self._cell = cell
+        self._refused = motion_refused
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._cell, name)
+
+    def _check(self, _cell: object = None) -> None:
+        from oralnav.sim.world.cell import CellError
+
+        why = self._refused()
+        if why:
+            raise CellError(f"stopped: {why}")
+
+    def move(self, name: str, T_ref_tool_reported: np.ndarray) -> None:
+        self._check()
+        self._cell.move(name, T_ref_tool_reported, on_step=self._check)
+
+    def close(self, name: str) -> bool:
+        self._check()
+        return bool(self._cell.close(name))
+
+    def open(self, name: str) -> None:
+        self._check()
+        self._cell.open(name)
 
 
 class NeedleSession:
@@ -59,7 +98,8 @@ class NeedleSession:
             cell, info = trial_cell(int(trial), rig=trial_rig(), difficulty=float(difficulty),
                                     drivable=port_drives(CT1, self._settings),
                                     workable=port_pair(CT1, self._settings))
-            proc = NeedleProcedure(cell, info.incision, info.surface_normal, self._settings,
+            proc = NeedleProcedure(StoppableCell(cell, self._refused), info.incision,
+                                   info.surface_normal, self._settings,
                                    surface_outline=info.surface_outline,
                                    truth_check=check_truth)
             self._proc = proc

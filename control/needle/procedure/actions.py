@@ -96,6 +96,18 @@ class CellActions:
         except Exception as exc:   # the cell's own error type; the arm stopped short
             raise StepFailed("move_stopped", f"{what}: {exc}") from None
 
+    def _jaws(self, arm: str, close: bool, what: str) -> None:
+        """Close (``close``) or open ``arm``'s jaws. A cell that refuses (a stop came while
+        the step ran: the daemon's cell asks its safety state first) fails the step with
+        ``move_stopped``, as an arm that stopped short does."""
+        try:
+            if close:
+                self.cell.close(arm)
+            else:
+                self.cell.open(arm)
+        except Exception as exc:   # the cell's own error type
+            raise StepFailed("move_stopped", f"{what}: {exc}") from None
+
     def _reach(self, arm: str, poses: Sequence[np.ndarray], margin: float | None = None
                ) -> tuple[bool, str]:
         """Whether ``arm`` reaches every pose, and the limit that refuses one. Plans keep

@@ -310,7 +310,7 @@ class NeedleProcedure(CellActions):
         g, up, meetings = chosen
         self._move(arm, back_off(g.T_ref_T, s.approach), "pick-up approach")
         self._move(arm, g.T_ref_T, "pick-up reach")
-        self.cell.close(arm)
+        self._jaws(arm, True, "pick-up: closing the jaws")
         T_N = self._verify_hold(arm, up @ self.cell.gripper_pose(arm), "pick-up")
         self.holder, self.G_TN = arm, self._grasp_seen(arm, T_N)
         figures.update(arm=arm, grasp_phi_deg=round(math.degrees(g.params.phi), 2),
@@ -393,8 +393,8 @@ class NeedleProcedure(CellActions):
                                               f"it was carried ({why})")
         self._move(B, back_off(T_B, s.approach), "hand-off approach")
         self._move(B, T_B, "hand-off reach")
-        self.cell.close(B)
-        self.cell.open(A)
+        self._jaws(B, True, "hand-off: the driver closing its jaws")
+        self._jaws(A, False, "hand-off: the picker opening its jaws")
         self.holder = B
         for goal, what in ((back_off(self.cell.gripper_pose(A), s.retreat), "back off"),
                            (self.park[A], "park")):
@@ -552,7 +552,7 @@ class NeedleProcedure(CellActions):
         s = self.s
         B = self.driver
         assert B is not None
-        self.cell.open(B)
+        self._jaws(B, False, "release: opening the driver's jaws")
         self.holder = None
         self._back_off_released(B, "regrasp")
         T_N = self._converged("regrasp")
@@ -611,7 +611,7 @@ class NeedleProcedure(CellActions):
         s = self.s
         self._move(arm, back_off(g.T_ref_T, s.approach), "regrasp approach")
         self._move(arm, g.T_ref_T, "regrasp reach")
-        self.cell.close(arm)
+        self._jaws(arm, True, "regrasp: closing the jaws")
         # whether the jaws hold the needle is shown by the pull (NP): standing in the
         # tissue, with the jaws over its tip part, the needle shows too little for a
         # small check motion to tell a hold from a miss (the jaws hide the tip, the
