@@ -53,3 +53,10 @@ def worker_environ(_item: object) -> dict[str, str | None]:
     return {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS",
                                            "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
 
+
+
+def dask_setting(key: str) -> object:
+    """This process's Dask setting ``key`` (run on a worker)."""
+    import dask
+
+    return dask.config.get(key)

@@ -9,9 +9,14 @@ import sys
 
 import pytest
 
-from oralnav.bench.executor import SchedulerError, TrialRunner, worker_profiles
+from oralnav.bench.executor import (
+    LOCAL_CLUSTER_SETTINGS,
+    SchedulerError,
+    TrialRunner,
+    worker_profiles,
+)
 
-from .sweep_trials import dying_trial, fit_trial, worker_environ
+from .sweep_trials import dask_setting, dying_trial, fit_trial, worker_environ
 
 distributed = pytest.importorskip("distributed", reason="Dask is the extra oralnav[cluster]")
 
@@ -148,8 +153,9 @@ def test_local_cluster_workers_run_in_the_pools_environment(cluster):
 def test_local_cluster_workers_do_not_profile_the_trials(cluster, tmp_path):
     """Issue 35 target (LocalCluster within 10 % of the pool): Dask's statistical profiler
     takes the GIL from the trial every 10 ms (a needle trial 20.0-24.8 s with it against
-    17.3-19.7 s without); the LocalCluster's workers run without it, and so does a worker
-    restarted after a crash, with the pool's environment too."""
+    17.3-19.7 s without); the LocalCluster's workers run without it and with slower
+    housekeeping (its machinery took 12.8 % of a core idle, 2.0 % with it), and so does a
+    worker restarted after a crash, with the pool's environment too."""
     import time
 
     cluster.map(dying_trial, [(s, str(tmp_path)) for s in range(4)])  # one worker dies
@@ -160,3 +166,6 @@ def test_local_cluster_workers_do_not_profile_the_trials(cluster, tmp_path):
         time.sleep(0.1)  # the nanny restarts the dead worker
     assert list(client.run(worker_profiles).values()) == [False, False]
     assert list(client.run(worker_environ, None).values()) == [worker_environ(None)] * 2
+    # the cluster's slower housekeeping (LOCAL_CLUSTER_SETTINGS), on every worker
+    for key, value in LOCAL_CLUSTER_SETTINGS.items():
+        assert list(client.run(dask_setting, key).values()) == [value] * 2, key
