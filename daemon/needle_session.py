@@ -40,9 +40,10 @@ class StoppableCell:
     """The needle cell as the daemon's steps move it: before every jaw action, and after
     every increment of a move (1 mm, 2 deg: ``NeedleCell.move``'s steps), it asks
     ``motion_refused()`` whether motion is still allowed. A stop that comes while a step
-    runs (an e-stop, a fault, a pause) ends the motion where it is, within one increment:
-    the cell's ``CellError`` naming the safety state, which the step reports as
-    ``move_stopped``. Everything else is the cell's own (attributes are passed through)."""
+    runs (an e-stop, a fault: the core's latched states) ends the motion where it is,
+    within one increment: the cell's ``CellError`` naming the safety state, which the step
+    reports as ``move_stopped``. Everything else is the cell's own (attributes are passed
+    through)."""
 
     def __init__(self, cell: Any, motion_refused: Callable[[], str]) -> None:
         self._cell = cell
