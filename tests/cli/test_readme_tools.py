@@ -22,6 +22,9 @@ TOOL = ".venv/bin/oralnav"
 #: Command prefixes parsed but not run, and why.
 NOT_RUN = {
     ("bench",): "a benchmark (minutes)",
+    # the quick report is 5 minutes on two cores; tests/bench/report runs each of its
+    # experiments at test sizes, and tests/cli/test_report.py the command
+    ("report",): "the papers' experiments (minutes)",
     ("sim", "peers"): "runs protocol peers until stopped",
     ("calibrate", "temporal"): "needs a running daemon",
     ("replay",): "reads a daemon's recording",
