@@ -91,20 +91,20 @@ class CellActions:
 
     # -- motion ---------------------------------------------------------------------------
     def _move(self, arm: str, T: np.ndarray, what: str) -> None:
-        try:
-            self.cell.move(arm, T)
-        except Exception as exc:   # the cell's own error type; the arm stopped short
-            raise StepFailed("move_stopped", f"{what}: {exc}") from None
+        self._act(what, self.cell.move, arm, T)
 
     def _jaws(self, arm: str, close: bool, what: str) -> None:
         """Close (``close``) or open ``arm``'s jaws. A cell that refuses (a stop came while
         the step ran: the daemon's cell asks its safety state first) fails the step with
         ``move_stopped``, as an arm that stopped short does."""
+        self._act(what, self.cell.close if close else self.cell.open, arm)
+
+    @staticmethod
+    def _act(what: str, action: Callable[..., Any], *args: Any) -> None:
+        """``action(*args)`` on the cell; the cell's own error (an arm stopped short, a
+        refused motion) fails the step with ``move_stopped`` and ``what``."""
         try:
-            if close:
-                self.cell.close(arm)
-            else:
-                self.cell.open(arm)
+            action(*args)
         except Exception as exc:   # the cell's own error type
             raise StepFailed("move_stopped", f"{what}: {exc}") from None
 
