@@ -34,16 +34,39 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def start_oralnavd(folder: Path, port: int, log: Path | None = None) -> subprocess.Popen:
-    """``oralnavd`` on the embedded sim configuration, its API on ``port``, its state and
-    demo tokens in ``folder``; its output piped (read it when it has ended), or written
-    to ``log`` for a daemon that runs longer than a pipe's buffer holds."""
+def sim_config(folder: Path, changes: dict[str, str]) -> Path:
+    """A copy of the embedded sim configuration in ``folder``, its relative paths made
+    absolute, with each line ``changes`` names (``"rate_hz = 500.0"``) replaced by its
+    value (the line must be there once)."""
+    config_dir = Path(__file__).resolve().parents[2] / "config"
+    text = (config_dir / "sim.toml").read_text()
+
+    def absolute(m: re.Match) -> str:
+        path = config_dir / m.group(2)
+        return f'{m.group(1)}"{path}"' if path.exists() else m.group(0)
+
+    text = re.sub(r'^(\w+ = )"([^"]+)"', absolute, text, flags=re.M)
+    for old, new in changes.items():
+        lines = [ln for ln in text.splitlines() if ln.split("#")[0].strip() == old]
+        assert len(lines) == 1, f"{old!r} is not one line of config/sim.toml"
+        text = text.replace(lines[0], new)
+    path = folder / "sim.toml"
+    path.write_text(text)
+    return path
+
+
+def start_oralnavd(folder: Path, port: int, log: Path | None = None,
+                   config: Path | None = None) -> subprocess.Popen:
+    """``oralnavd`` on ``config`` (default: the embedded sim configuration), its API on
+    ``port``, its state and demo tokens in ``folder``; its output piped (read it when it
+    has ended), or written to ``log`` for a daemon that runs longer than a pipe's buffer
+    holds."""
     env = dict(os.environ, STATE_DIRECTORY=str(folder), RUNTIME_DIRECTORY=str(folder))
     out = subprocess.PIPE if log is None else open(log, "w")  # noqa: SIM115
+    args = ["--api-port", str(port)] + (["--config", str(config)] if config else [])
     try:
-        return subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main",
-                                 "--api-port", str(port)], env=env, cwd=folder,
-                                stdout=out, stderr=out, text=True)
+        return subprocess.Popen([sys.executable, "-m", "oralnav.daemon.main", *args],
+                                env=env, cwd=folder, stdout=out, stderr=out, text=True)
     finally:
         if log is not None:
             out.close()  # the child holds its own descriptor
