@@ -3,6 +3,7 @@
 simulator's truth, every failure classified by its cause.
 
     oralnav bench needle --trials N --seed S --out DIR [--json] [--workers W]
+                         [--arm-error MM DEG]
     python -m bench needle [--quick]
 
 Each trial is :func:`oralnav.sim.world.needle_trials.trial_cell` (seed ``S + k``): a stereo
@@ -27,11 +28,17 @@ Writes ``needle.json``: ``{"trials", "overall", "steps": {step: overall rate}}``
 II's first row, as the issue asks), the individual rates (Table II's second row), the
 failure classes with their trials, the seed's figures for comparison, and one record per
 trial.
+
+``--arm-error MM DEG`` gives each arm a kinematic error of that size (the tool is ``MM``
+and ``DEG`` away from where the arm reports it: ``needle_trials.arm_errors``), drawn per
+trial apart from the layout, so the same seeds show what the error costs. Off by default.
 """
 
 from __future__ import annotations
 
+import functools
 import json
+import math
 import os
 import platform
 import sys
@@ -119,8 +126,14 @@ def first_failure(results: Sequence[Any]) -> tuple[dict[str, bool | None], dict 
     return steps, failure
 
 
-def run_trial(seed: int) -> dict[str, Any]:
-    """One trial: the procedure on ``trial_cell(seed)``; its record (JSON-able)."""
+def _arm_error_json(arm_error: tuple[float, float] | None) -> dict[str, float] | None:
+    """``(mm, deg)`` as the records and the summary give it."""
+    return None if arm_error is None else {"mm": arm_error[0], "deg": arm_error[1]}
+
+
+def run_trial(seed: int, arm_error: tuple[float, float] | None = None) -> dict[str, Any]:
+    """One trial: the procedure on ``trial_cell(seed)``, each arm with a kinematic error of
+    ``arm_error`` (mm, deg) when given; its record (JSON-able)."""
     from oralnav.config.rig import trial_rig
     from oralnav.control.needle.procedure import NeedleProcedure, port_drives, port_pair
     from oralnav.sim.world.needle_trials import CT1, trial_cell
@@ -129,13 +142,16 @@ def run_trial(seed: int) -> dict[str, Any]:
     t0 = time.perf_counter()
     # the cell is set up for the suture: its ports chosen together with the procedure's
     # own rules (one arm drives and pulls, the other picks up and hands over)
+    error = (None if arm_error is None
+             else (arm_error[0] * 1e-3, math.radians(arm_error[1])))
     cell, info = trial_cell(seed, rig=trial_rig(), drivable=port_drives(CT1),
-                            workable=port_pair(CT1))
+                            workable=port_pair(CT1), arm_error=error)
     proc = NeedleProcedure(cell, info.incision, info.surface_normal,
                            surface_outline=info.surface_outline, truth_check=check_truth)
     results = proc.run_all()
     steps, failure = first_failure(results)
     return {"seed": seed, "steps": steps, "failure": failure,
+            **({} if arm_error is None else {"arm_error": _arm_error_json(arm_error)}),
             "seconds": round(time.perf_counter() - t0, 2),
             "results": [r.to_json() for r in results]}
 
@@ -153,9 +169,11 @@ def classify(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
             for (st, c), s in sorted(seen.items(), key=lambda kv: -len(kv[1]))]
 
 
-def _kept_trials(store: Path | None, seeds: Sequence[int]) -> dict[int, dict[str, Any]]:
-    """The records of ``seeds`` already in ``store`` (one ``SEED.json`` each); a file that
-    does not read back (a write cut short) is left out, so its trial runs again."""
+def _kept_trials(store: Path | None, seeds: Sequence[int],
+                 arm_error: tuple[float, float] | None = None) -> dict[int, dict[str, Any]]:
+    """The records of ``seeds`` already in ``store`` (one ``SEED.json`` each) run with
+    ``arm_error``; a file that does not read back (a write cut short), or a record of
+    other settings, is left out, so its trial runs again."""
     kept: dict[int, dict[str, Any]] = {}
     if store is None:
         return kept
@@ -164,21 +182,23 @@ def _kept_trials(store: Path | None, seeds: Sequence[int]) -> dict[int, dict[str
             rec = json.loads((store / f"{s}.json").read_text())
         except (OSError, ValueError):
             continue
-        if isinstance(rec, dict) and rec.get("seed") == s:
+        if (isinstance(rec, dict) and rec.get("seed") == s
+                and rec.get("arm_error") == _arm_error_json(arm_error)):
             kept[s] = rec
     return kept
 
 
 def run(trials: int, seed: int, workers: int | None = None,
         progress: bool = True, scheduler: str | None = None,
-        store: Path | None = None) -> dict[str, Any]:
+        store: Path | None = None,
+        arm_error: tuple[float, float] | None = None) -> dict[str, Any]:
     """The Monte Carlo over ``trials`` seeds from ``seed``; the summary document. The
     trials run on the engine ``scheduler`` names (``bench/executor.py``: by default a
     local process pool of ``workers``; a trial is a pure function of its seed).
     ``store``: a folder each finished trial's record is written to as it comes in, and
     read back from on the next run, so an interrupted Monte Carlo resumes where it
     stopped (the caller keeps it to one commit: a record is the code's as much as the
-    seed's)."""
+    seed's). ``arm_error``: each arm's kinematic error (mm, deg), :func:`run_trial`."""
     from oralnav.bench.executor import TrialRunner
     from oralnav.config.loader import atomic_write_text
     from oralnav.control.needle.procedure import step_rates
@@ -186,7 +206,10 @@ def run(trials: int, seed: int, workers: int | None = None,
     if trials < 1:
         raise ValueError(f"needle bench: trials must be >= 1, got {trials}")
     seeds = list(range(seed, seed + trials))
-    kept = _kept_trials(store, seeds)
+    if arm_error is not None and not all(math.isfinite(v) and v >= 0 for v in arm_error):
+        raise ValueError(f"needle bench: the arm error must be two finite values >= 0 (mm, "
+                         f"deg), got {arm_error}")
+    kept = _kept_trials(store, seeds, arm_error)
     todo = [s for s in seeds if s not in kept]
     if scheduler is None:
         workers = max(1, min(workers or os.cpu_count() or 1, max(len(todo), 1)))
@@ -214,7 +237,9 @@ def run(trials: int, seed: int, workers: int | None = None,
             print(f"needle: {len(todo)} trials on {runner.name}"
                   + (f", dashboard {runner.dashboard}" if runner.dashboard else ""),
                   file=sys.stderr, flush=True)
-        fresh = runner.map(run_trial, todo, on_result=report) if todo else []
+        trial = run_trial if arm_error is None else functools.partial(
+            run_trial, arm_error=tuple(map(float, arm_error)))
+        fresh = runner.map(trial, todo, on_result=report) if todo else []
         engine, workers = runner.name, runner.workers
     ran = dict(zip(todo, fresh, strict=True))
     records = [kept[s] if s in kept else ran[s] for s in seeds]
@@ -224,6 +249,7 @@ def run(trials: int, seed: int, workers: int | None = None,
     return {"bench": "needle", "trials": rates["trials"], "overall": rates["overall"],
             "overall_interval": list(wilson(succeeded, len(records))),
             "split": seed_split(seeds[0], seeds[-1]),
+            "arm_error": _arm_error_json(arm_error),
             "steps": rates["steps"], "individual": rates["individual"],
             "failures": classify(records), "failure_causes": dict(causes),
             "paper": PAPER, "target_overall": 0.90, "seed": seed,
@@ -241,19 +267,22 @@ def summary(doc: dict[str, Any]) -> dict[str, Any]:
 
 def main(out: Path, quick: bool = False, trials: int | None = None, seed: int = 0,
          workers: int | None = None, scheduler: str | None = None,
-         validation: bool = False) -> dict[str, Any]:
+         validation: bool = False,
+         arm_error: tuple[float, float] | None = None) -> dict[str, Any]:
     """Run the Monte Carlo (``quick``: 10 trials, ``validation``: ``VALIDATION_TRIALS``
-    from ``VALIDATION_SEED``, else 200 unless ``trials`` is given) and write
-    ``needle.json`` into ``out``."""
+    from ``VALIDATION_SEED``, else 200 unless ``trials`` is given; ``arm_error``: each
+    arm's kinematic error, mm and deg) and write ``needle.json`` into ``out``."""
     if validation:
         seed = VALIDATION_SEED
     n = trials if trials is not None else (
         10 if quick else VALIDATION_TRIALS if validation else 200)
-    doc = run(n, seed, workers, scheduler=scheduler)
+    doc = run(n, seed, workers, scheduler=scheduler, arm_error=arm_error)
     out.mkdir(parents=True, exist_ok=True)
     (out / "needle.json").write_text(json.dumps(doc, indent=1) + "\n")
     lo, hi = doc["overall_interval"]
-    print(f"needle: {doc['trials']} trials on {doc['split']} seeds {seed}-{seed + n - 1}, "
+    err = ("" if arm_error is None
+           else f" with {arm_error[0]:g} mm / {arm_error[1]:g} deg arm errors")
+    print(f"needle: {doc['trials']} trials on {doc['split']} seeds {seed}-{seed + n - 1}{err}, "
           f"overall {100 * doc['overall']:.1f} % ({100 * CONFIDENCE:.0f} % interval "
           f"{100 * lo:.1f}-{100 * hi:.1f} %; "
           f"seed 002: {100 * PAPER['overall']:.0f} % of {PAPER['trials']}); per step "

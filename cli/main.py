@@ -16,7 +16,7 @@
     oralnav plan place --scene FILE [--figures DIR] [--json]
     oralnav replay FILE.mcap [--json]
     oralnav bench navigation|control|calibration|planning [--quick] --out DIR
-    oralnav bench needle [--trials N] [--seed S | --validation] [--workers W]
+    oralnav bench needle [--trials N] [--seed S | --validation] [--workers W] [--arm-error MM DEG]
                          [--scheduler ADDRESS] [--quick] [--tracking]
                          --out DIR [--json]
     oralnav bench faults [--quick] --out DIR [--json]
@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -439,6 +440,10 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
         raise UsageError(f"--trials must be at least 1, got {args.trials}")
     if args.workers is not None and args.workers < 1:
         raise UsageError(f"--workers must be at least 1, got {args.workers}")
+    if args.arm_error is not None and not all(math.isfinite(v) and v >= 0
+                                              for v in args.arm_error):
+        raise UsageError(f"--arm-error takes two finite values >= 0 (mm, deg), got "
+                         f"{' '.join(f'{v:g}' for v in args.arm_error)}")
     if args.validation and (args.seed is not None or args.quick):
         raise UsageError("--validation runs the validation seeds from "
                          f"{needle.VALIDATION_SEED}: give it without --seed or --quick")
@@ -447,7 +452,8 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
     try:
         doc = needle.main(Path(args.out), quick=args.quick, trials=args.trials,
                           seed=args.seed or 0, workers=args.workers,
-                          scheduler=args.scheduler, validation=args.validation)
+                          scheduler=args.scheduler, validation=args.validation,
+                          arm_error=None if args.arm_error is None else tuple(args.arm_error))
     except SchedulerError as exc:
         raise UsageError(str(exc)) from None
     s = needle.summary(doc)
@@ -719,6 +725,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="run the trials on a Dask cluster: its scheduler's address "
                          "(tcp://host:8786), or 'local' for a LocalCluster of --workers "
                          "here (needs oralnav[cluster]; default: a local process pool)")
+    nd.add_argument("--arm-error", type=float, nargs=2, default=None, metavar=("MM", "DEG"),
+                    help="give each arm a kinematic error: its tool MM and DEG away from "
+                         "where it reports it (a random direction and axis per arm and "
+                         "trial, drawn apart from the layout; default: none)")
     nd.add_argument("--quick", action="store_true", help="fewer trials")
     nd.add_argument("--out", required=True, help="folder for needle.json (and charts)")
     nd.add_argument("--json", action="store_true",

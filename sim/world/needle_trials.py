@@ -47,13 +47,20 @@ gain 0.03-0.1, supersample 2.
 ``difficulty`` (0..1, default 1) scales the imaging nuisances (the illumination gradient,
 the blur above 0.8 px, the noise above its floor) without changing the draw: the layout is
 drawn first, so a seed gives the same layout at every difficulty.
+
+``arm_error`` (off by default): each arm's kinematic error, the transform between where
+it reports its tool and where the tool is (``NeedleCell``'s ``kinematic_error``), as a
+real arm's joint offsets and registration leave it. Each arm's is a rotation of the given
+angle about a random axis through its RCM, then a translation of the given length in a
+random direction, drawn from a stream of its own (:func:`arm_errors`), so a seed gives the
+same layout, and the same imaging, with and without it.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -65,7 +72,7 @@ from oralnav.control.vision.camera import Rig
 from oralnav.sim.world.needle_cell import ArmReach, CellError, NeedleCell
 from oralnav.sim.world.scene import Gripper, Imaging, NeedleObject, Scene, TissuePad
 
-__all__ = ["PairCheck", "PortCheck", "TrialInfo", "trial_cell", "trial_scene"]
+__all__ = ["PairCheck", "PortCheck", "TrialInfo", "arm_errors", "trial_cell", "trial_scene"]
 
 PAD_SIZE = (0.070, 0.060)
 CT1 = Needle(radius=0.013, wire_diameter=0.001, arc=math.pi)
@@ -112,6 +119,9 @@ PairCheck = Callable[[Mapping[str, ArmReach], np.ndarray, np.ndarray, np.ndarray
                       np.ndarray], bool]
 #: The most port pairs a trial asks ``workable`` about (of PORT_CANDIDATES squared).
 PAIR_CHECKS = 40
+#: The second word of the arm errors' seed (``[seed, ARM_ERROR_STREAM]``): a stream apart
+#: from the layout's, which ``seed`` alone seeds.
+ARM_ERROR_STREAM = 1
 
 
 @dataclass(frozen=True)
@@ -248,15 +258,52 @@ def _outline(T_ref_pad: np.ndarray) -> np.ndarray:
         [[-sx, -sy, 0.0], [sx, -sy, 0.0], [sx, sy, 0.0], [-sx, sy, 0.0]]) / 2)
 
 
+def _unit(rng: np.random.Generator) -> np.ndarray:
+    """A direction drawn uniformly on the sphere."""
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+def arm_errors(seed: int, reach: Mapping[str, ArmReach], translation: float,
+               rotation: float) -> dict[str, np.ndarray]:
+    """Each arm's kinematic error for trial ``seed`` (``E``, 4x4, reference frame: the arm
+    reports ``E @ T_true``): a rotation of ``rotation`` rad about a random axis through
+    the arm's RCM, then a translation of ``translation`` m in a random direction; arms
+    drawn in name order from the stream ``[seed, ARM_ERROR_STREAM]``."""
+    for name, v in (("translation", translation), ("rotation", rotation)):
+        if not (math.isfinite(v) and v >= 0):
+            raise CellError(f"arm error: {name} must be finite and >= 0, got {v}")
+    rng = np.random.default_rng([int(seed), ARM_ERROR_STREAM])
+    out = {}
+    for name in sorted(reach):
+        R = Rotation.from_rotvec(rotation * _unit(rng)).as_matrix()
+        t = translation * _unit(rng)
+        rcm = np.asarray(reach[name].rcm, dtype=float)
+        out[name] = make_transform(R, rcm - R @ rcm + t)
+    return out
+
+
 def trial_cell(seed: int, *, rig: Rig, difficulty: float = 1.0,
                drivable: PortCheck | None = None,
                workable: PairCheck | None = None,
+               arm_error: tuple[float, float] | None = None,
                **options) -> tuple[NeedleCell, TrialInfo]:
     """A randomised two-arm needle cell for trial ``seed`` and what was drawn, its ports
-    chosen with ``drivable`` (:func:`trial_scene`); ``options`` go to :class:`NeedleCell`
-    (e.g. ``kinematic_error``)."""
+    chosen with ``drivable`` (:func:`trial_scene`); ``arm_error``: ``(translation m,
+    rotation rad)`` of each arm's kinematic error (:func:`arm_errors`; the info's values
+    then hold them, under ``arm_error``); ``options`` go to :class:`NeedleCell` (e.g.
+    ``kinematic_error``, which ``arm_error`` replaces: give one)."""
     scene, reach, info = trial_scene(seed, rig=rig, difficulty=difficulty, drivable=drivable,
                                      workable=workable)
+    if arm_error is not None:
+        if "kinematic_error" in options:
+            raise CellError("give arm_error or kinematic_error, not both")
+        errors = arm_errors(seed, reach, *arm_error)
+        options["kinematic_error"] = errors
+        info = replace(info, values={**info.values, "arm_error": {
+            n: {"rotvec_deg": _r(np.degrees(Rotation.from_matrix(E[:3, :3]).as_rotvec())),
+                "at_rcm_m": _r(E[:3, :3] @ reach[n].rcm + E[:3, 3] - reach[n].rcm)}
+            for n, E in errors.items()}})
     return NeedleCell(scene, reach, **options), info
 
 

@@ -61,3 +61,37 @@ def test_a_development_run_says_so(stand_in, tmp_path, capsys):
     doc = needle.main(tmp_path, trials=4, seed=0, workers=1)
     assert stand_in == [0, 1, 2, 3] and doc["split"] == "development"
     assert "development seeds 0-3" in capsys.readouterr().err
+
+
+def test_an_arm_error_reaches_every_trial_and_is_recorded(monkeypatch, tmp_path, capsys):
+    """Issue 36, trials with arm errors: ``arm_error`` (mm, deg) reaches each trial (here on
+    a two-process pool, so the trial function with it must cross to the workers), the
+    summary and stderr say it, and a stored record of other settings is run again rather
+    than kept."""
+    store = tmp_path / "store"
+    store.mkdir()
+    (store / "0.json").write_text(json.dumps({"seed": 0, "steps": {}, "failure": None,
+                                              "seconds": 0.1, "results": []}))
+    monkeypatch.setattr(needle, "run_trial", _recording_trial)
+    doc = needle.run(2, 0, workers=2, progress=False, store=store, arm_error=(2.0, 1.0))
+    assert doc["arm_error"] == {"mm": 2.0, "deg": 1.0}
+    assert [r["arm_error"] for r in doc["records"]] == [{"mm": 2.0, "deg": 1.0}] * 2
+    kept = needle.run(2, 0, workers=1, progress=False, store=store, arm_error=(2.0, 1.0))
+    assert [r["seconds"] for r in kept["records"]] == [r["seconds"] for r in doc["records"]]
+    with pytest.raises(ValueError, match="finite values >= 0"):
+        needle.run(1, 0, workers=1, progress=False, arm_error=(-1.0, 0.0))
+    needle.main(tmp_path, trials=1, seed=0, workers=1, arm_error=(2.0, 1.0))
+    assert "with 2 mm / 1 deg arm errors" in capsys.readouterr().err
+
+
+def _recording_trial(seed: int, arm_error=None) -> dict:
+    """A stand-in trial (module level: it crosses to pool workers) that records the arm
+    error it was given, the way run_trial does."""
+    import os
+
+    steps = dict.fromkeys(("NG", "NH", "ND", "NR", "NP"), True)
+    rec = {"seed": seed, "steps": steps, "failure": None, "seconds": float(os.getpid()),
+           "results": []}
+    if arm_error is not None:
+        rec["arm_error"] = {"mm": arm_error[0], "deg": arm_error[1]}
+    return rec

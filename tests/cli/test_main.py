@@ -163,6 +163,28 @@ def test_bench_needle_validation_runs_the_validation_seeds(tmp_path, capsys, mon
     assert len(calls) == 1
 
 
+def test_bench_needle_arm_error_is_passed_or_refused(tmp_path, capsys, monkeypatch):
+    """Issue 36 (arm errors): `--arm-error 2 1` reaches the Monte Carlo as (mm, deg);
+    a negative or non-finite value is bad input (exit 2, naming the option) and runs
+    nothing."""
+    from oralnav.bench import needle
+
+    calls = []
+    steps = {k: 1.0 for k in ("NG", "NH", "ND", "NR", "NP")}
+    monkeypatch.setattr(needle, "main", lambda out, **kw: calls.append(kw)
+                        or {"trials": 2, "overall": 1.0, "steps": steps,
+                            "split": "development"})
+    assert cli.run(["bench", "needle", "--trials", "2", "--arm-error", "2", "1", "--out",
+                    str(tmp_path)]) == 0
+    assert calls[0]["arm_error"] == (2.0, 1.0)
+    capsys.readouterr()
+    for bad in (["-1", "0"], ["1", "nan"]):
+        assert cli.run(["bench", "needle", "--arm-error", *bad, "--out", str(tmp_path),
+                        "--json"]) == 2
+        assert "--arm-error takes two finite values >= 0" in _one_json(capsys)["error"]
+    assert len(calls) == 1
+
+
 def test_bench_needle_bad_counts_exit_2_naming_the_option(tmp_path, capsys):
     """issue 30: `oralnav bench needle --trials 0` (or --workers 0) is bad input: exit
     status 2 and a message naming the option, before any trial runs."""

@@ -225,3 +225,50 @@ def test_ports_are_chosen_together_with_a_pair_check():
     assert not np.allclose(reach_none["left"].rcm, reach["left"].rcm)
     with pytest.raises(CellError, match="drivable"):
         trial_scene(5, rig=RIG, workable=third_pair)
+
+
+def test_arm_errors_have_the_asked_size_and_leave_the_draw_alone():
+    """Issue 36 (trials where the arm is not where it says): each arm's kinematic error is
+    a rotation of exactly the asked angle about an axis through its RCM and a translation
+    of exactly the asked length, drawn from a stream apart from the layout: the same seed
+    gives the same errors, another seed others, and the layout and the images are those
+    of the trial without them. The cell reports each tool through its error."""
+    from oralnav.sim.world.needle_trials import arm_errors
+
+    plain, plain_info = trial_cell(4, rig=RIG)
+    cell, info = trial_cell(4, rig=RIG, arm_error=(0.002, math.radians(1.0)))
+    reach = {n: cell.arm_reach(n) for n in ("left", "right")}
+    E = arm_errors(4, reach, 0.002, math.radians(1.0))
+    for n, En in E.items():
+        angle = math.degrees(math.acos((np.trace(En[:3, :3]) - 1) / 2))
+        assert angle == pytest.approx(1.0, abs=1e-9)
+        moved = transform_points(En, reach[n].rcm[None])[0] - reach[n].rcm
+        assert np.linalg.norm(moved) == pytest.approx(0.002, abs=1e-12)
+        np.testing.assert_allclose(cell.gripper_pose(n), En @ plain.gripper_pose(n),
+                                   atol=1e-12)
+        assert info.values["arm_error"][n]["at_rcm_m"] == pytest.approx(moved.tolist(),
+                                                                        abs=1e-6)
+    assert not np.allclose(E["left"], E["right"])
+    again = arm_errors(4, reach, 0.002, math.radians(1.0))
+    assert all(np.array_equal(E[n], again[n]) for n in E)
+    other = arm_errors(5, reach, 0.002, math.radians(1.0))
+    assert not np.allclose(E["left"], other["left"])
+    assert {k: v for k, v in info.values.items() if k != "arm_error"} == plain_info.values
+    a, b = plain.images(), cell.images()
+    assert all(np.array_equal(a[c], b[c]) for c in a)
+    assert all(np.array_equal(v, np.eye(4)) for v in arm_errors(4, reach, 0.0, 0.0).values())
+
+
+@pytest.mark.parametrize("error, why", [((-0.001, 0.0), "translation must be finite"),
+                                        ((0.001, math.nan), "rotation must be finite")])
+def test_a_bad_arm_error_is_named(error, why):
+    """Bad input: a negative or non-finite arm error is refused, naming which part."""
+    with pytest.raises(CellError, match=why):
+        trial_cell(4, rig=RIG, arm_error=error)
+
+
+def test_arm_error_and_a_kinematic_error_are_not_both_taken():
+    """Bad input: the drawn arm errors replace an explicit kinematic error, so giving
+    both is refused rather than one silently ignored."""
+    with pytest.raises(CellError, match="not both"):
+        trial_cell(4, rig=RIG, arm_error=(0.001, 0.0), kinematic_error={"left": np.eye(4)})
