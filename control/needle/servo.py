@@ -1,0 +1,242 @@
+"""Position-based visual servoing of a held needle (issue 36, item 1): the law and its
+guards, free of I/O and of time sources (the caller passes the clock).
+
+The needle held in closed jaws moves with the true tool, and the arm is commanded through
+its *reported* tool pose, which differs from the true one by the arm's kinematic error
+(``reported = E @ true``: joint offsets, registration). A motion planned open-loop puts
+the needle where the plan says only when ``E`` is the identity: with ``E`` a rotation of
+0.5 deg about the arm's RCM and a 1 mm shift, 60 % of the simulated trials failed,
+mostly in the drive (``oralnav bench needle --arm-error 1 0.5``, docs/needle.md). The
+servo corrects from where the needle is *seen*: each tracked pose gives the error of a
+control point on the needle (the tip during a drive) and of the needle's orientation,
+and the command moves the reported tool by a share of that error, rotating about the
+control point. The commanded change reaches the true tool turned by ``E``'s rotation, so
+the updates contract while that rotation is small (a few degrees), whatever ``E``'s
+shift; the servo never needs ``E`` itself.
+
+Position-based rather than image-based: the tracker already fuses both views into a pose
+with its uncertainty (the refinement's sigmas), the goals are poses (the drive's arc,
+the hand-off pose), and a pose error turns into a tool motion without an image Jacobian
+per view; an image-based law would have to rebuild what the refinement does.
+
+Guards, each a :class:`ServoStop` naming its cause, before anything is commanded:
+
+- ``lost``: the tracker has not converged on the frame (its reason is carried);
+- ``uncertain``: the pose's one-sigma position or angle over the servo's bounds;
+- ``stale``: the frame older than ``max_age`` at the time of the update;
+- ``jump``: the seen pose off where the last seen pose, moved as the tool moved since,
+  puts it, by more than ``max_jump_shift`` or ``max_jump_turn`` (a twin flip turns the
+  needle 180 deg; a slip in the jaws moves it); never a servo on a contradicted pose;
+- ``not_finite``: a pose that is not a finite rigid transform;
+- ``no_progress``: ``max_updates`` corrections without reaching the goal.
+
+A frame no newer than the last one used is not used twice (that would double its
+correction): the update holds (an identity command). Frames: the reference frame (the
+stereo endoscope's left channel); metres, radians; stamps in seconds of the caller's
+monotonic clock.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from oralnav.control.errors import NeedleError
+from oralnav.control.geometry import rotation_angle
+
+__all__ = ["HeldNeedleServo", "Seen", "ServoCommand", "ServoSettings", "ServoStop"]
+
+
+@dataclass(frozen=True)
+class ServoSettings:
+    """``gain``: the share of the seen error corrected per update, in (0, 1]; each
+    correction at most ``max_shift`` (m, of the control point) and ``max_turn`` (rad),
+    scaled together so the correction keeps the error's direction; the goal is reached
+    within ``done_shift`` (m) and ``done_turn`` (rad). The guards' bounds: ``max_age``
+    (s), ``max_sigma_position`` (m) and ``max_sigma_angle`` (rad) (the tracker's own
+    convergence bounds by default), ``max_jump_shift`` (m) and ``max_jump_turn`` (rad),
+    ``max_updates``."""
+
+    gain: float = 0.6
+    max_shift: float = 0.001
+    max_turn: float = math.radians(2.0)
+    done_shift: float = 0.0001
+    done_turn: float = math.radians(0.2)
+    max_age: float = 0.1
+    max_sigma_position: float = 0.0003
+    max_sigma_angle: float = math.radians(1.5)
+    max_jump_shift: float = 0.002
+    max_jump_turn: float = math.radians(10.0)
+    max_updates: int = 50
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.gain) and 0.0 < self.gain <= 1.0):
+            raise NeedleError(f"servo: gain must be in (0, 1], got {self.gain}")
+        for name in ("max_shift", "max_turn", "done_shift", "done_turn", "max_age",
+                     "max_sigma_position", "max_sigma_angle", "max_jump_shift",
+                     "max_jump_turn"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0.0):
+                raise NeedleError(f"servo: {name} must be finite and > 0, got {v}")
+        if isinstance(self.max_updates, bool) or not isinstance(self.max_updates, int) \
+                or self.max_updates < 1:
+            raise NeedleError(f"servo: max_updates must be an integer >= 1, got "
+                              f"{self.max_updates!r}")
+
+
+@dataclass(frozen=True)
+class Seen:
+    """One tracked frame: the needle's pose ``T_ref_N`` (4x4, m), the frame's capture
+    ``stamp`` (s), whether the tracker ``converged`` on it (``reason`` when not), and the
+    pose's one-sigma ``sigma_position`` (m) and ``sigma_angle`` (rad)."""
+
+    pose: np.ndarray
+    stamp: float
+    converged: bool = True
+    reason: str = ""
+    sigma_position: float = 0.0
+    sigma_angle: float = 0.0
+
+    @classmethod
+    def from_track(cls, track, stamp: float) -> Seen:
+        """From a :class:`~oralnav.control.needle.tracker.NeedleTrack` and its frame's
+        capture time (s); a track without a refinement has no sigmas (infinite)."""
+        r = track.refined
+        return cls(np.asarray(track.pose, dtype=float), float(stamp), bool(track.converged),
+                   track.reason,
+                   math.inf if r is None else float(r.sigma_position),
+                   math.inf if r is None else float(r.sigma_angle))
+
+
+class ServoStop(NeedleError):
+    """The servo will not command a motion: ``cause`` (``lost``, ``uncertain``,
+    ``stale``, ``jump``, ``not_finite``, ``no_progress``) and what it saw."""
+
+    def __init__(self, cause: str, detail: str) -> None:
+        super().__init__(f"servo stopped ({cause}): {detail}")
+        self.cause = cause
+        self.detail = detail
+
+
+@dataclass(frozen=True)
+class ServoCommand:
+    """One update's answer: move the reported tool to ``delta @`` its current pose
+    (``delta`` 4x4, reference frame; the identity when ``done`` or holding); ``shift``
+    (m) and ``turn`` (rad): the seen error of the control point and the orientation;
+    ``done``: the goal is reached; ``held``: the frame was not newer than the last one
+    used, nothing was corrected."""
+
+    delta: np.ndarray
+    shift: float
+    turn: float
+    done: bool
+    held: bool = False
+
+
+def _rigid(T: np.ndarray) -> bool:
+    T = np.asarray(T)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return bool(np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
+                and np.allclose(T[3], (0.0, 0.0, 0.0, 1.0)))
+
+
+def _about(point: np.ndarray, rotvec: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """The rigid motion that turns by ``rotvec`` (rad) about ``point`` (m), then shifts
+    by ``shift`` (m); 4x4."""
+    R = Rotation.from_rotvec(rotvec).as_matrix()
+    D = np.eye(4)
+    D[:3, :3] = R
+    D[:3, 3] = point - R @ point + shift
+    return D
+
+
+class HeldNeedleServo:
+    """Servo a held needle to ``goal`` (``T_ref_N``, 4x4, m): the error measured at
+    ``control_point`` (3,, needle frame, m; the tip during a drive) and in orientation.
+    Call :meth:`update` with each new tracked frame; move the reported tool by each
+    command's ``delta`` until it says ``done``; a :class:`ServoStop` means stop the arm."""
+
+    def __init__(self, goal: np.ndarray, control_point: np.ndarray | None = None,
+                 settings: ServoSettings | None = None) -> None:
+        if not _rigid(goal):
+            raise ServoStop("not_finite", "the goal is not a finite rigid 4x4 transform")
+        self.goal = np.asarray(goal, dtype=float).copy()
+        cp = np.zeros(3) if control_point is None else np.asarray(control_point, float)
+        if cp.shape != (3,) or not np.all(np.isfinite(cp)):
+            raise NeedleError(f"servo: the control point must be 3 finite values (m), got "
+                              f"{control_point!r}")
+        self.control_point = cp
+        self.s = settings or ServoSettings()
+        self.updates = 0
+        self._last: Seen | None = None
+        self._last_delta = np.eye(4)
+
+    def _point(self, T: np.ndarray) -> np.ndarray:
+        return T[:3, :3] @ self.control_point + T[:3, 3]
+
+    def _check(self, seen: Seen, now: float, tool_motion: np.ndarray | None) -> None:
+        s = self.s
+        if not _rigid(seen.pose) or not math.isfinite(seen.stamp):
+            raise ServoStop("not_finite", "the tracked pose is not a finite rigid 4x4 "
+                                          "transform with a finite stamp")
+        if not seen.converged:
+            raise ServoStop("lost", f"the tracker has not converged ({seen.reason})")
+        if seen.sigma_position > s.max_sigma_position or seen.sigma_angle > s.max_sigma_angle:
+            raise ServoStop("uncertain", f"the pose is uncertain ({seen.sigma_position * 1e3:.2f}"
+                                         f" mm, {math.degrees(seen.sigma_angle):.2f} deg; "
+                                         f"bounds {s.max_sigma_position * 1e3:.2f} mm, "
+                                         f"{math.degrees(s.max_sigma_angle):.2f} deg)")
+        age = now - seen.stamp
+        if age > s.max_age:
+            raise ServoStop("stale", f"the frame is {age * 1e3:.0f} ms old (bound "
+                                     f"{s.max_age * 1e3:.0f} ms)")
+        if self._last is not None:
+            motion = self._last_delta if tool_motion is None else np.asarray(tool_motion,
+                                                                              float)
+            if not _rigid(motion):
+                raise ServoStop("not_finite", "the tool's motion is not a finite rigid "
+                                              "4x4 transform")
+            predicted = motion @ self._last.pose
+            off = float(np.linalg.norm(self._point(seen.pose) - self._point(predicted)))
+            turn = rotation_angle(seen.pose[:3, :3], predicted[:3, :3])
+            if off > s.max_jump_shift or turn > s.max_jump_turn:
+                raise ServoStop("jump", f"the needle is seen {off * 1e3:.2f} mm and "
+                                        f"{math.degrees(turn):.1f} deg from where the tool's "
+                                        f"motion puts it (bounds {s.max_jump_shift * 1e3:.1f} "
+                                        f"mm, {math.degrees(s.max_jump_turn):.0f} deg)")
+
+    def update(self, seen: Seen, now: float,
+               tool_motion: np.ndarray | None = None) -> ServoCommand:
+        """The command for the tracked frame ``seen`` at time ``now`` (s, the stamps'
+        clock). ``tool_motion``: how the reported tool moved (4x4, reference frame, left
+        factor) between the last frame used and this one; by default the last command's
+        delta (the motion completed before the frame was taken). :class:`ServoStop` when
+        a guard trips."""
+        if self._last is not None and seen.stamp <= self._last.stamp:
+            return ServoCommand(np.eye(4), math.nan, math.nan, done=False, held=True)
+        self._check(seen, now, tool_motion)
+        T = np.asarray(seen.pose, dtype=float)
+        p = self._point(T)
+        e_p = self._point(self.goal) - p
+        w = Rotation.from_matrix(self.goal[:3, :3] @ T[:3, :3].T).as_rotvec()
+        shift, turn = float(np.linalg.norm(e_p)), float(np.linalg.norm(w))
+        self._last = seen
+        if shift <= self.s.done_shift and turn <= self.s.done_turn:
+            self._last_delta = np.eye(4)
+            return ServoCommand(np.eye(4), shift, turn, done=True)
+        self.updates += 1
+        if self.updates > self.s.max_updates:
+            raise ServoStop("no_progress", f"{self.s.max_updates} corrections and the "
+                                           f"needle is still {shift * 1e3:.2f} mm and "
+                                           f"{math.degrees(turn):.2f} deg from the goal")
+        k = min(self.s.gain, self.s.max_shift / shift if shift > 0 else math.inf,
+                self.s.max_turn / turn if turn > 0 else math.inf)
+        delta = _about(p, k * w, k * e_p)
+        self._last_delta = delta
+        return ServoCommand(delta, shift, turn, done=False)
+
