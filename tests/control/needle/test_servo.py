@@ -201,3 +201,20 @@ def test_a_bad_goal_or_control_point_is_refused():
         HeldNeedleServo(np.full((4, 4), np.nan))
     with pytest.raises(NeedleError, match="control point"):
         HeldNeedleServo(np.eye(4), np.zeros(2))
+
+
+def test_a_tracker_answer_becomes_a_seen_frame():
+    """A tracker's answer carries its pose, convergence, reason and the refinement's
+    sigmas; without a refinement the sigmas are infinite, so the servo stops on it
+    (uncertain) even were it marked converged."""
+    from types import SimpleNamespace
+
+    refined = SimpleNamespace(sigma_position=0.0001, sigma_angle=0.01)
+    track = SimpleNamespace(pose=np.eye(4), refined=refined, converged=True, reason="")
+    seen = Seen.from_track(track, 2.5)
+    assert (seen.stamp, seen.sigma_position, seen.sigma_angle) == (2.5, 0.0001, 0.01)
+    bare = Seen.from_track(SimpleNamespace(pose=np.eye(4), refined=None, converged=True,
+                                           reason=""), 2.5)
+    assert math.isinf(bare.sigma_position)
+    with pytest.raises(ServoStop, match="uncertain"):
+        HeldNeedleServo(make_transform(None, [0.0, 0.0, 0.001])).update(bare, 2.5)
