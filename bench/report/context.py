@@ -58,7 +58,8 @@ class Experiment:
         run: measures and returns the section (raises on failure; the runner turns the
             error into a failed section).
         estimate_s: (quick, full) seconds on the 2-core development machine, for the
-            progress line's time left.
+            progress line's time left. The full ones are the first end-to-end run's
+            times (2026-11-27, 49.7 min in all) plus about 30 % for a slower day.
     """
 
     key: str

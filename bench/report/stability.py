@@ -310,7 +310,7 @@ def _chart_tracker(ctx: Context, doc: dict[str, Any]) -> tuple[str, list[dict[st
 #: the quick per-point times (29 points of 5 frames; 240 tracker trials of 6 frames).
 EXPERIMENTS: tuple[Experiment, ...] = (
     Experiment("stability/navigation", "Stability: navigation methods where they break",
-               run_navigation, estimate_s=(80.0, 250.0)),
+               run_navigation, estimate_s=(80.0, 140.0)),
     Experiment("stability/needle_tracker", "Stability: where the needle tracker loses the "
-               "needle", run_needle_tracker, estimate_s=(30.0, 400.0)),
+               "needle", run_needle_tracker, estimate_s=(30.0, 280.0)),
 )
