@@ -20,6 +20,7 @@ import httpx
 import pytest
 
 from ..drivers.test_camera_aravis import ARAVIS_MISSING
+from ..helpers import machine_stops_only
 
 # alone (./dev.sh test runs these after the parallel suite, with the machine to itself):
 # each runs a whole daemon whose 500 Hz loop, at normal scheduling beside the suite's
@@ -196,18 +197,34 @@ def test_main_job_visits_every_target(tmp_path: Path) -> None:
     simulated cell while the demo plays the operator over REST; every suture target is
     reached with a TRE under 0.2 mm against ground truth, and it exits 0. The same run
     records the session (issue 33 item 4: `--record`, every 10th round's frames, cheap on
-    CPU): the file is complete, nothing was dropped, and its rounds replay bit for bit."""
+    CPU): the file is complete, nothing was dropped, and its rounds replay bit for bit. A
+    run stopped by the machine alone (a loop stall, camera stalls: tests/helpers.py
+    MACHINE_STOPS) is run once more; any other stop fails at once."""
     import json as _json
+    import logging
 
     from oralnav.cli.replay import replay
 
-    env = dict(os.environ, STATE_DIRECTORY=str(tmp_path), RUNTIME_DIRECTORY=str(tmp_path))
-    proc = subprocess.run([sys.executable, "-m", "oralnav.daemon.main", "--demo", "--json",
-                           "--api-port", str(_free_port()), "--record", "demo.mcap",
-                           "--record-every", "10", "--record-compression", "none"],
-                          env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    def main_job(folder: Path) -> tuple[subprocess.CompletedProcess, dict]:
+        folder.mkdir()
+        env = dict(os.environ, STATE_DIRECTORY=str(folder), RUNTIME_DIRECTORY=str(folder))
+        proc = subprocess.run([sys.executable, "-m", "oralnav.daemon.main", "--demo",
+                               "--json", "--api-port", str(_free_port()), "--record",
+                               "demo.mcap", "--record-every", "10", "--record-compression",
+                               "none"], env=env, cwd=folder, capture_output=True, text=True,
+                              timeout=300)
+        try:
+            return proc, _json.loads(proc.stdout)
+        except ValueError:
+            return proc, {}
+
+    proc, doc = main_job(tmp_path / "first")
+    if proc.returncode != 0 and machine_stops_only(doc.get("demo", {}).get("reasons")):
+        logging.getLogger(__name__).warning("main job stopped by the machine; run again "
+                                            "once: %s", doc["demo"]["reasons"])
+        proc, doc = main_job(tmp_path / "second")
+    tmp_path = tmp_path / ("second" if (tmp_path / "second").exists() else "first")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    doc = _json.loads(proc.stdout)
     demo = doc["demo"]
     assert demo["done"] is True
     assert set(demo["tre_mm"]) == {"stitch_1", "stitch_2", "stitch_3", "stitch_4"}
