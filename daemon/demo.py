@@ -39,6 +39,8 @@ async def play_operator(port: int, clear: dict[str, str],
             if safety["state"] == "READY":
                 break
             if time.monotonic() - t0 > READY_TIMEOUT_S:
+                # kept, as during the procedure: a caller tells a stop from a slow start
+                result.update(state=safety["state"], reasons=safety.get("reasons"))
                 why = safety.get("not_ready_reason") or safety.get("reasons")
                 raise RuntimeError(f"the cell did not become READY within "
                                    f"{READY_TIMEOUT_S:g} s (state {safety['state']}: {why})")

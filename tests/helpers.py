@@ -145,9 +145,16 @@ def machine_stops_only(reasons: object) -> bool:
     """Whether the daemon's stop ``reasons`` (its /status safety reasons, each a dict
     with a ``source``) are all :data:`MACHINE_STOPS`: an end-to-end run stopped by those
     alone may be run once more; any other reason fails it."""
-    return (isinstance(reasons, list) and bool(reasons)
-            and all(isinstance(e, dict) and str(e.get("source", "")).startswith(MACHINE_STOPS)
-                    for e in reasons))
+    def machine(e: object) -> bool:
+        # a watchdog names itself as the source (deadline:stalled, camera_stall:left); the
+        # loop's own stop is the source "control loop" with the trip as its reason
+        if not isinstance(e, dict):
+            return False
+        source, reason = str(e.get("source", "")), str(e.get("reason", ""))
+        return source.startswith(MACHINE_STOPS) or (source == "control loop"
+                                                    and reason.startswith("deadline:"))
+
+    return isinstance(reasons, list) and bool(reasons) and all(map(machine, reasons))
 
 
 def draw_visible_runs(img: np.ndarray, uv: np.ndarray, keep: np.ndarray, value: int,

@@ -94,6 +94,11 @@ def test_only_a_stop_on_a_starved_machine_is_run_again():
     passed run, or a run without the daemon's reasons do not."""
     stall = {"kind": "fault", "source": "camera_stall:left"}
     late = {"kind": "fault", "source": "deadline:stalled"}
+    loop = {"kind": "fault", "source": "control loop",
+            "reason": "deadline:stalled: control loop completed no period for 114 ms"}
+    gone = {"kind": "fault", "source": "control loop", "reason": "arm disconnected"}
+    assert _machine_stops_only({"passed": False, "reasons": [loop, late]})
+    assert not _machine_stops_only({"passed": False, "reasons": [loop, gone]})
     other = {"kind": "fault", "source": "pose_timeout:opener"}
     assert _machine_stops_only({"passed": False, "reasons": [stall, dict(stall)]})
     assert _machine_stops_only({"passed": False, "reasons": [late, stall]})
