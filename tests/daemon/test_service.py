@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import logging
 import os
 import re
 import signal
@@ -157,6 +158,22 @@ class _Api:
         """An operator's POST; its HTTP status."""
         return httpx.post(f"{self.base}{path}", headers=self.operator, timeout=5).status_code
 
+    def ready(self, resets: int = 2) -> dict:
+        """Poll /status until READY; the status. A FAULT on the machine's stops alone (a
+        loop stall, camera stalls: tests/helpers.py MACHINE_STOPS, seen in two clean-clone
+        runs as the cell came up) is reset, as an operator would, at most ``resets``
+        times; any other state fails as :meth:`until` does."""
+        for _ in range(resets + 1):
+            st = self.until(lambda s: s["safety"]["state"] == "READY" or (
+                s["safety"]["state"] == "FAULT"
+                and machine_stops_only(s["safety"]["reasons"])), "READY")
+            if st["safety"]["state"] == "READY":
+                return st
+            logging.getLogger(__name__).warning("the cell faulted on the machine's stops; "
+                                                "reset: %s", st["safety"]["reasons"])
+            self.reset_when_allowed()
+        return self.until(lambda s: s["safety"]["state"] == "READY", "READY")
+
     def reset_when_allowed(self, timeout: float = 20.0) -> None:
         """POST /reset until the daemon accepts it (the fault conditions have cleared)."""
         deadline = time.monotonic() + timeout
@@ -201,7 +218,6 @@ def test_main_job_visits_every_target(tmp_path: Path) -> None:
     run stopped by the machine alone (a loop stall, camera stalls: tests/helpers.py
     MACHINE_STOPS) is run once more; any other stop fails at once."""
     import json as _json
-    import logging
 
     from oralnav.cli.replay import replay
 
@@ -261,7 +277,7 @@ def test_daemon_runs_a_hardware_cell_on_protocol_peers(tmp_path: Path) -> None:
         proc, base = _start_daemon(config, tmp_path)
         try:
             api = _Api(base, _wait_for_api(proc, base, tmp_path))
-            st = api.until(lambda s: s["safety"]["state"] == "READY", "READY")
+            st = api.ready()
             loop = st["control_loop"]
             assert loop["arm_connected"] and loop["wrist_connected"], loop
             assert loop["wrist_fault"] is None and st["inputs"]["connected"]
