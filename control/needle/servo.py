@@ -44,8 +44,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from oralnav.control.errors import NeedleError
-from oralnav.control.geometry import rotation_angle
+from oralnav.control.errors import GeometryError, NeedleError
+from oralnav.control.geometry import as_transform, rotation_angle
 
 __all__ = ["HeldNeedleServo", "Seen", "ServoCommand", "ServoSettings", "ServoStop"]
 
@@ -136,13 +136,13 @@ class ServoCommand:
     held: bool = False
 
 
-def _rigid(T: np.ndarray) -> bool:
-    T = np.asarray(T)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        return False
-    R = T[:3, :3]
-    return bool(np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
-                and np.allclose(T[3], (0.0, 0.0, 0.0, 1.0)))
+def _transform(T: np.ndarray, what: str) -> np.ndarray:
+    """``T`` as a rigid 4x4 (:func:`~oralnav.control.geometry.as_transform`), or a
+    ``not_finite`` :class:`ServoStop` naming what is wrong with ``what``."""
+    try:
+        return as_transform(T, what=what)
+    except GeometryError as exc:
+        raise ServoStop("not_finite", str(exc)) from None
 
 
 def _about(point: np.ndarray, rotvec: np.ndarray, shift: np.ndarray) -> np.ndarray:
@@ -163,9 +163,7 @@ class HeldNeedleServo:
 
     def __init__(self, goal: np.ndarray, control_point: np.ndarray | None = None,
                  settings: ServoSettings | None = None) -> None:
-        if not _rigid(goal):
-            raise ServoStop("not_finite", "the goal is not a finite rigid 4x4 transform")
-        self.goal = np.asarray(goal, dtype=float).copy()
+        self.goal = _transform(goal, "the goal").copy()
         cp = np.zeros(3) if control_point is None else np.asarray(control_point, float)
         if cp.shape != (3,) or not np.all(np.isfinite(cp)):
             raise NeedleError(f"servo: the control point must be 3 finite values (m), got "
@@ -181,9 +179,9 @@ class HeldNeedleServo:
 
     def _check(self, seen: Seen, now: float, tool_motion: np.ndarray | None) -> None:
         s = self.s
-        if not _rigid(seen.pose) or not math.isfinite(seen.stamp):
-            raise ServoStop("not_finite", "the tracked pose is not a finite rigid 4x4 "
-                                          "transform with a finite stamp")
+        _transform(seen.pose, "the tracked pose")
+        if not math.isfinite(seen.stamp):
+            raise ServoStop("not_finite", f"the frame's stamp is {seen.stamp}")
         if not seen.converged:
             raise ServoStop("lost", f"the tracker has not converged ({seen.reason})")
         if seen.sigma_position > s.max_sigma_position or seen.sigma_angle > s.max_sigma_angle:
@@ -196,11 +194,8 @@ class HeldNeedleServo:
             raise ServoStop("stale", f"the frame is {age * 1e3:.0f} ms old (bound "
                                      f"{s.max_age * 1e3:.0f} ms)")
         if self._last is not None:
-            motion = self._last_delta if tool_motion is None else np.asarray(tool_motion,
-                                                                              float)
-            if not _rigid(motion):
-                raise ServoStop("not_finite", "the tool's motion is not a finite rigid "
-                                              "4x4 transform")
+            motion = (self._last_delta if tool_motion is None
+                      else _transform(tool_motion, "the tool's motion"))
             predicted = motion @ self._last.pose
             off = float(np.linalg.norm(self._point(seen.pose) - self._point(predicted)))
             turn = rotation_angle(seen.pose[:3, :3], predicted[:3, :3])
