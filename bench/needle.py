@@ -126,6 +126,18 @@ def first_failure(results: Sequence[Any]) -> tuple[dict[str, bool | None], dict 
     return steps, failure
 
 
+def arm_error_checked(arm_error: Sequence[float] | None) -> tuple[float, float] | None:
+    """``arm_error`` as ``(mm, deg)`` floats; ``ValueError`` unless two finite values
+    >= 0 (checked here, before any trial starts, for the tool and :func:`run` alike)."""
+    if arm_error is None:
+        return None
+    values = tuple(float(v) for v in arm_error)
+    if len(values) != 2 or not all(math.isfinite(v) and v >= 0 for v in values):
+        raise ValueError(f"needle bench: the arm error must be two finite values >= 0 (mm, "
+                         f"deg), got {arm_error}")
+    return values[0], values[1]
+
+
 def _arm_error_json(arm_error: tuple[float, float] | None) -> dict[str, float] | None:
     """``(mm, deg)`` as the records and the summary give it."""
     return None if arm_error is None else {"mm": arm_error[0], "deg": arm_error[1]}
@@ -206,9 +218,7 @@ def run(trials: int, seed: int, workers: int | None = None,
     if trials < 1:
         raise ValueError(f"needle bench: trials must be >= 1, got {trials}")
     seeds = list(range(seed, seed + trials))
-    if arm_error is not None and not all(math.isfinite(v) and v >= 0 for v in arm_error):
-        raise ValueError(f"needle bench: the arm error must be two finite values >= 0 (mm, "
-                         f"deg), got {arm_error}")
+    arm_error = arm_error_checked(arm_error)
     kept = _kept_trials(store, seeds, arm_error)
     todo = [s for s in seeds if s not in kept]
     if scheduler is None:
@@ -238,7 +248,7 @@ def run(trials: int, seed: int, workers: int | None = None,
                   + (f", dashboard {runner.dashboard}" if runner.dashboard else ""),
                   file=sys.stderr, flush=True)
         trial = run_trial if arm_error is None else functools.partial(
-            run_trial, arm_error=tuple(map(float, arm_error)))
+            run_trial, arm_error=arm_error)
         fresh = runner.map(trial, todo, on_result=report) if todo else []
         engine, workers = runner.name, runner.workers
     ran = dict(zip(todo, fresh, strict=True))

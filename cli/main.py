@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from collections.abc import Sequence
@@ -440,10 +439,11 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
         raise UsageError(f"--trials must be at least 1, got {args.trials}")
     if args.workers is not None and args.workers < 1:
         raise UsageError(f"--workers must be at least 1, got {args.workers}")
-    if args.arm_error is not None and not all(math.isfinite(v) and v >= 0
-                                              for v in args.arm_error):
+    try:
+        arm_error = needle.arm_error_checked(args.arm_error)
+    except ValueError:
         raise UsageError(f"--arm-error takes two finite values >= 0 (mm, deg), got "
-                         f"{' '.join(f'{v:g}' for v in args.arm_error)}")
+                         f"{' '.join(f'{v:g}' for v in args.arm_error)}") from None
     if args.validation and (args.seed is not None or args.quick):
         raise UsageError("--validation runs the validation seeds from "
                          f"{needle.VALIDATION_SEED}: give it without --seed or --quick")
@@ -453,7 +453,7 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
         doc = needle.main(Path(args.out), quick=args.quick, trials=args.trials,
                           seed=args.seed or 0, workers=args.workers,
                           scheduler=args.scheduler, validation=args.validation,
-                          arm_error=None if args.arm_error is None else tuple(args.arm_error))
+                          arm_error=arm_error)
     except SchedulerError as exc:
         raise UsageError(str(exc)) from None
     s = needle.summary(doc)

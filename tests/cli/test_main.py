@@ -142,17 +142,23 @@ def test_bench_needle_tracking_flag_runs_the_tracking_chart(tmp_path, capsys, mo
     assert calls[0][2]["seed"] == 0 and calls[0][2]["validation"] is False
 
 
+def _stand_in_needle_main(monkeypatch, trials: int, split: str) -> list[dict]:
+    """``bench.needle.main`` replaced by a stand-in that records its keyword arguments
+    and succeeds every step of ``trials`` trials on ``split`` seeds; the calls."""
+    from oralnav.bench import needle
+
+    calls: list[dict] = []
+    steps = {k: 1.0 for k in ("NG", "NH", "ND", "NR", "NP")}
+    monkeypatch.setattr(needle, "main", lambda out, **kw: calls.append(kw)
+                        or {"trials": trials, "overall": 1.0, "steps": steps, "split": split})
+    return calls
+
+
 def test_bench_needle_validation_runs_the_validation_seeds(tmp_path, capsys, monkeypatch):
     """Issue 36 item 2: `oralnav bench needle --validation` asks for the validation Monte
     Carlo; with --seed or --quick it is bad input (exit 2, naming the range) and runs
     nothing."""
-    from oralnav.bench import needle
-
-    calls = []
-    steps = {k: 1.0 for k in ("NG", "NH", "ND", "NR", "NP")}
-    monkeypatch.setattr(needle, "main", lambda out, **kw: calls.append(kw)
-                        or {"trials": 400, "overall": 1.0, "steps": steps,
-                            "split": "validation"})
+    calls = _stand_in_needle_main(monkeypatch, 400, "validation")
     assert cli.run(["bench", "needle", "--validation", "--out", str(tmp_path)]) == 0
     assert calls[0]["validation"] is True and calls[0]["trials"] is None
     assert "400 trials on validation seeds" in capsys.readouterr().out
@@ -167,13 +173,7 @@ def test_bench_needle_arm_error_is_passed_or_refused(tmp_path, capsys, monkeypat
     """Issue 36 (arm errors): `--arm-error 2 1` reaches the Monte Carlo as (mm, deg);
     a negative or non-finite value is bad input (exit 2, naming the option) and runs
     nothing."""
-    from oralnav.bench import needle
-
-    calls = []
-    steps = {k: 1.0 for k in ("NG", "NH", "ND", "NR", "NP")}
-    monkeypatch.setattr(needle, "main", lambda out, **kw: calls.append(kw)
-                        or {"trials": 2, "overall": 1.0, "steps": steps,
-                            "split": "development"})
+    calls = _stand_in_needle_main(monkeypatch, 2, "development")
     assert cli.run(["bench", "needle", "--trials", "2", "--arm-error", "2", "1", "--out",
                     str(tmp_path)]) == 0
     assert calls[0]["arm_error"] == (2.0, 1.0)

@@ -221,7 +221,7 @@ def test_main_job_visits_every_target(tmp_path: Path) -> None:
 
     from oralnav.cli.replay import replay
 
-    def main_job(folder: Path) -> tuple[subprocess.CompletedProcess, dict]:
+    def main_job(folder: Path) -> tuple[Path, subprocess.CompletedProcess, dict]:
         folder.mkdir()
         env = dict(os.environ, STATE_DIRECTORY=str(folder), RUNTIME_DIRECTORY=str(folder))
         proc = subprocess.run([sys.executable, "-m", "oralnav.daemon.main", "--demo",
@@ -230,16 +230,15 @@ def test_main_job_visits_every_target(tmp_path: Path) -> None:
                                "none"], env=env, cwd=folder, capture_output=True, text=True,
                               timeout=300)
         try:
-            return proc, _json.loads(proc.stdout)
+            return folder, proc, _json.loads(proc.stdout)
         except ValueError:
-            return proc, {}
+            return folder, proc, {}
 
-    proc, doc = main_job(tmp_path / "first")
+    folder, proc, doc = main_job(tmp_path / "first")
     if proc.returncode != 0 and machine_stops_only(doc.get("demo", {}).get("reasons")):
         logging.getLogger(__name__).warning("main job stopped by the machine; run again "
                                             "once: %s", doc["demo"]["reasons"])
-        proc, doc = main_job(tmp_path / "second")
-    tmp_path = tmp_path / ("second" if (tmp_path / "second").exists() else "first")
+        folder, proc, doc = main_job(tmp_path / "second")
     assert proc.returncode == 0, proc.stderr[-3000:]
     demo = doc["demo"]
     assert demo["done"] is True
@@ -247,9 +246,9 @@ def test_main_job_visits_every_target(tmp_path: Path) -> None:
     assert max(demo["tre_mm"].values()) < 0.2
     assert demo["rates_hz"]["tracking cell"] > 1.0
     rec = doc["recording"]
-    assert rec["state"] == "stopped" and rec["path"] == str(tmp_path / "demo.mcap"), rec
+    assert rec["state"] == "stopped" and rec["path"] == str(folder / "demo.mcap"), rec
     assert rec["frames"]["dropped"] == 0 and rec["frames"]["written"] >= 3
-    out = replay(tmp_path / "demo.mcap")
+    out = replay(folder / "demo.mcap")
     assert out["all_identical"] and out["poses"] >= 3 and not out["truncated"], out
     assert out["poses_recorded"] >= 2 * rec["rounds"]  # every pose of every round, kept
 
