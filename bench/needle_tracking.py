@@ -196,7 +196,7 @@ def _wire_contrast(image: np.ndarray, cam: CameraModel, needle: Needle,
 
 def still_clip(seed: int, scene: Scene, info: TrialInfo, frames: int) -> Clip:
     """A free needle that does not move: ``frames`` renders of ``scene`` (new noise each)."""
-    renderer = SceneRenderer(scene)
+    renderer = SceneRenderer(scene, keep_clean=1)  # the same state each frame
     cams = tuple(scene.rig[c] for c in scene.rig.names)
     nd = scene.needles[0]
     clip = Clip(seed, cams, nd.needle)

@@ -347,7 +347,8 @@ class NeedleCell:
         if open_gap is not None and not (math.isfinite(open_gap) and open_gap > 0):
             raise CellError(f"open_gap must be > 0 m, got {open_gap}")
         self._scene = scene
-        self._renderer = SceneRenderer(scene)
+        # the procedure looks at still scenes several times: keep their noise-free renders
+        self._renderer = SceneRenderer(scene, keep_clean=6)
         self._nd: NeedleObject = scene.needles[0]
         self._pad: TissuePad = scene.pads[0]
         self._grippers: dict[str, Gripper] = {g.name: g for g in scene.grippers}

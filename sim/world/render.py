@@ -17,7 +17,12 @@ precomputed background. Per object and camera:
 
 Illumination gradient, Gaussian blur, motion blur (sub-exposure poses averaged) and read +
 shot noise follow. Noise comes from OpenCV's RNG seeded from (scene seed, frame, camera),
-so the same scene, seed and frame give the same bytes.
+so the same scene, seed and frame give the same bytes. Everything before the noise is a
+function of the poses and jaw gaps alone, so a renderer asked to (``keep_clean``) keeps
+each camera's last few noise-free signals with their ground truth: a scene rendered again
+unmoved (a procedure looking several times at a still needle) then costs only the noise.
+It is off by default, where a render stands in for a camera's capture time (the daemon's
+simulated cell, the render benchmark).
 
 Ground truth per camera: each field's pose and the exact projection of every visible
 chessboard corner (in the image, printed face toward the camera, not under a blot, not
@@ -37,9 +42,11 @@ its pose, the projection of K arc points and whether each is visible.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 import weakref
+from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 
@@ -349,13 +356,22 @@ class SceneRenderer:
     """Renders a :class:`~oralnav.sim.world.scene.Scene` into images with ground truth.
 
     The constructor only records the scene; per-camera ray maps and textures are built on
-    first use and kept. ``render`` is thread-safe to call from one worker thread at a time.
+    first use and kept. With ``keep_clean`` > 0 so are that many recent noise-free renders
+    per camera, keyed by every pose and jaw gap: a state rendered again gets only fresh
+    noise, and the same bytes and truth as a full render.
+    ``render`` is thread-safe to call from one worker thread at a time.
     """
 
-    def __init__(self, scene: Scene, needle_points: int = NEEDLE_TRUTH_POINTS) -> None:
+    def __init__(self, scene: Scene, needle_points: int = NEEDLE_TRUTH_POINTS,
+                 keep_clean: int = 0) -> None:
         self.scene = scene
+        if keep_clean < 0:
+            raise RenderError(f"keep_clean must be >= 0 renders, got {keep_clean}")
+        self.keep_clean = int(keep_clean)
         self._cams: dict[str, _CameraState] = {}
         self._tex: dict[str, _Texture] = {}
+        # per camera: state key -> (noise-free signal, field truth, needle truth)
+        self._clean: dict[str, OrderedDict[bytes, tuple]] = {}
         for p in scene.placements:
             if not p.field.renderable:
                 raise RenderError(
@@ -438,11 +454,13 @@ class SceneRenderer:
                 raise RenderError(f"pose of {n!r} must be a finite 4x4 transform")
         images, truth, needle_truth, times = {}, {}, {}, {}
         names = cameras or tuple(sc.rig.names)
+        key = _state_key(T_ref, T_obj, grippers) if self.keep_clean else b""
         for cam_name in names:
             t0 = time.perf_counter()
             # the noise draw belongs to the camera, whichever cameras this call renders
             ci = sc.rig.names.index(sc.rig[cam_name].name)
-            img, tr, ntr = self._render_camera(cam_name, T_ref, T_obj, frame, ci, grippers)
+            img, tr, ntr = self._render_camera(cam_name, T_ref, T_obj, frame, ci, grippers,
+                                               key)
             images[cam_name], truth[cam_name] = img, tr
             if sc.needles:
                 needle_truth[cam_name] = ntr
@@ -457,8 +475,33 @@ class SceneRenderer:
     # -- one camera -------------------------------------------------------------------
     def _render_camera(self, cam_name: str, T_ref: dict[str, np.ndarray],
                        T_obj: dict[str, np.ndarray], frame: int, cam_index: int,
-                       grippers: tuple[Gripper, ...]
+                       grippers: tuple[Gripper, ...], key: bytes
                        ) -> tuple[np.ndarray, dict[str, FieldTruth], dict[str, NeedleTruth]]:
+        """One camera's image (noise of ``frame`` on the noise-free signal of the state
+        ``key``, rendered or kept from an earlier call) and its ground truth."""
+        kept = self._clean.setdefault(cam_name, OrderedDict())
+        hit = kept.get(key) if self.keep_clean else None
+        if hit is None:
+            signal, truth, needle_truth = self._render_clean(cam_name, T_ref, T_obj, grippers)
+            if self.keep_clean:
+                kept[key] = (signal.copy(), copy.deepcopy(truth), copy.deepcopy(needle_truth))
+                while len(kept) > self.keep_clean:
+                    kept.popitem(last=False)
+        else:
+            kept.move_to_end(key)
+            # copies: a caller may keep or change a frame's truth; the kept one must not
+            signal, truth, needle_truth = (hit[0].copy(), copy.deepcopy(hit[1]),
+                                           copy.deepcopy(hit[2]))
+        if self.scene.imaging.noisy:
+            self._add_noise(signal, frame, cam_index)
+        np.maximum(signal, 0.0, out=signal)  # convertScaleAbs would mirror negatives
+        image = cv2.convertScaleAbs(signal)  # rounds and saturates to 0..255
+        return image, truth, needle_truth
+
+    def _render_clean(self, cam_name: str, T_ref: dict[str, np.ndarray],
+                      T_obj: dict[str, np.ndarray], grippers: tuple[Gripper, ...]
+                      ) -> tuple[np.ndarray, dict[str, FieldTruth], dict[str, NeedleTruth]]:
+        """One camera's noise-free signal (float, before clipping) and its ground truth."""
         st = self._camera(cam_name)
         cam = st.cam
         im = self.scene.imaging
@@ -511,10 +554,6 @@ class SceneRenderer:
                 after_layer |= layer is not None and p is layer.patch
         if im.blur_sigma_px > 0 and patches:
             self._blur(signal, patches, im.blur_sigma_px)
-        if im.noisy:
-            self._add_noise(signal, frame, cam_index)
-        np.maximum(signal, 0.0, out=signal)  # convertScaleAbs would mirror negatives
-        image = cv2.convertScaleAbs(signal)  # rounds and saturates to 0..255
         truth = {}
         for k, pl in enumerate(self.scene.placements):
             tr = self._field_truth(cam, pl, T_cam_ref @ T_ref[pl.name], owner, k + 1)
@@ -523,7 +562,7 @@ class SceneRenderer:
         needle_truth = {nd.name: self._needle_truth(cam, nd, T_cam_ref @ T_obj[nd.name],
                                                     layer, late)
                         for nd in self.scene.needles}
-        return image, truth, needle_truth
+        return signal, truth, needle_truth
 
     def _blur(self, signal: np.ndarray, patches: list[_Patch], sigma: float) -> None:
         """Gaussian blur inside the union box of all objects (the background is smooth)."""
@@ -1182,6 +1221,16 @@ class SceneRenderer:
 # optical axis. Each caster returns (hit, lam, cos): cos is the cosine between the surface
 # normal and the ray, from which the layer shades the samples it keeps (``_shade``);
 # parameters come per piece (leading axis m) unless scalar.
+
+def _state_key(T_ref: Mapping[str, np.ndarray], T_obj: Mapping[str, np.ndarray],
+               grippers: tuple[Gripper, ...]) -> bytes:
+    """What a camera's noise-free render depends on beyond the (fixed) scene: every
+    placement's and object's pose and every jaw gap, as exact bytes."""
+    parts = [np.ascontiguousarray(T, dtype=float).tobytes()
+             for poses in (T_ref, T_obj) for _, T in sorted(poses.items())]
+    parts.append(np.array([g.opening for g in grippers], dtype=float).tobytes())
+    return b"".join(parts)
+
 
 def _col(a: np.ndarray | float) -> np.ndarray:
     """Per-piece values (m,) as float32 (m, 1, 1), for broadcasting over a piece's slab."""

@@ -282,6 +282,37 @@ def test_same_seed_same_bytes():
     assert c.images["endoscope"].tobytes() != a.images["endoscope"].tobytes()
 
 
+def test_state_rendered_again_gets_a_full_renders_bytes():
+    """Issue 36 item 3 (per-trial cost): a state rendered again (poses and jaw gaps
+    unchanged) reuses its noise-free render, and its frame is byte for byte what a fresh
+    renderer gives, noise and truth included; any moved pose or jaw gap renders anew, and
+    a caller changing a frame's truth does not change a later frame's."""
+    scene = _full_scene()
+    grip = scene.grippers[0]
+    moved = {"grip": grip.T_ref_tool @ transform_from_euler([0.0, 0.0, 2e-6], [0, 0, 0])}
+    states = [({}, {}), (moved, {}), ({}, {}), ({}, {"grip": 0.002}), (moved, {})]
+    renderer = SceneRenderer(scene, keep_clean=3)
+    full = renderer._render_clean
+    calls = []
+    renderer._render_clean = lambda *a: calls.append(1) or full(*a)
+    for frame, (poses, openings) in enumerate(states):
+        got = renderer.render(poses=poses, frame=frame, openings=openings)
+        want = SceneRenderer(scene).render(poses=poses, frame=frame, openings=openings)
+        assert got.images["endoscope"].tobytes() == want.images["endoscope"].tobytes()
+        assert got.truth_json("endoscope") == want.truth_json("endoscope")
+        got.needle_truth["endoscope"]["n"].visible[:] = False
+    assert len(calls) == 3  # the third and the fifth states were rendered before
+    plain = SceneRenderer(scene)  # by default each render is a full one (a camera's time)
+    full_plain = plain._render_clean
+    calls.clear()
+    plain._render_clean = lambda *a: calls.append(1) or full_plain(*a)
+    plain.render(frame=0)
+    plain.render(frame=1)
+    assert len(calls) == 2
+    with pytest.raises(RenderError, match="keep_clean"):
+        SceneRenderer(scene, keep_clean=-1)
+
+
 def test_render_time_guard():
     """Issue 7 part 1 (speed): a 640 x 480 endoscope frame with a needle, a pad and a
     gripper (supersample 2, blur, noise) renders well within 100 ms median (about 10 ms
