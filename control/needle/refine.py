@@ -135,26 +135,49 @@ class ToolCylinder:
         along the optical axis (m), only those the cylinder's near side is in front of;
         without it depth is ignored and a point in front of the tool counts as hidden too
         (what a planner that must not overrate a view wants)."""
-        uv = np.asarray(uv, dtype=float)
-        A = cam.T_cam_ref[:3, :3] @ np.stack([self.a, self.b]).T + cam.T_cam_ref[:3, 3:4]
-        za, zb = A[2]
-        near = 0.01
-        if za <= near and zb <= near:
-            return np.zeros(len(uv), dtype=bool)
-        if za <= near or zb <= near:
-            cut = A[:, 0] + (near - za) / (zb - za) * (A[:, 1] - A[:, 0])
-            A = np.stack([A[:, 0] if za > near else cut, A[:, 1] if zb > near else cut], 1)
-        ends = cam.project(A.T)
-        d = ends[1] - ends[0]
-        L2 = float(d @ d)
-        t = np.clip(((uv - ends[0]) @ d) / L2, 0.0, 1.0) if L2 > 0 else np.zeros(len(uv))
-        dist = np.linalg.norm(uv - (ends[0] + t[:, None] * d), axis=1)
+        return cylinders_hide(cam, self.a[None], self.b[None], np.array([self.radius]),
+                              uv, depth)[0]
+
+
+#: Tool parts are cut this far (m) in front of the camera plane before they are projected.
+_TOOL_NEAR = 0.01
+
+
+def cylinders_hide(cam: CameraModel, a: np.ndarray, b: np.ndarray, radius: np.ndarray,
+                   uv: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
+    """:meth:`ToolCylinder.hides` for ``P`` cylinders at once: ends ``a``, ``b`` (P, 3,
+    reference frame, m), ``radius`` (P,, m), against the image points ``uv`` of ``cam``
+    (k, 2, px; or (P, k, 2), each cylinder its own points) and their ``depth`` ((k,) or
+    (P, k), m, optional). (P, k) bool. One projection for all the cylinders' ends: the
+    planners ask this of a few parts at a time, hundreds of thousands of times a trial."""
+    uv = np.asarray(uv, dtype=float)
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    P = len(a)
+    Tc = cam.T_cam_ref
+    A = a @ Tc[:3, :3].T + Tc[:3, 3]
+    B = b @ Tc[:3, :3].T + Tc[:3, 3]
+    za, zb = A[:, 2], B[:, 2]
+    gone = (za <= _TOOL_NEAR) & (zb <= _TOOL_NEAR)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cut = A + ((_TOOL_NEAR - za) / (zb - za))[:, None] * (B - A)
+    A = np.where((za > _TOOL_NEAR)[:, None], A, cut)
+    B = np.where((zb > _TOOL_NEAR)[:, None], B, cut)
+    ends = cam.project(np.concatenate([A, B])).reshape(2, P, 1, 2)
+    d = ends[1] - ends[0]                                        # (P, 1, 2)
+    L2 = (d * d).sum(axis=-1)                                    # (P, 1)
+    off = uv - ends[0]                                           # (P, k, 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.clip((off * d).sum(axis=-1) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
+        t = np.where(L2 > 0, t, 0.0)
+        dist = np.linalg.norm(off - t[..., None] * d, axis=-1)
         # the image of a cylinder widens toward the camera: 1/z runs linearly along it
-        inv_z = (1.0 - t) / A[2, 0] + t / A[2, 1]
-        hidden = dist <= cam.K[0, 0] * self.radius * inv_z
+        inv_z = (1.0 - t) / A[:, 2:3] + t / B[:, 2:3]
+        hidden = dist <= cam.K[0, 0] * np.asarray(radius, dtype=float)[:, None] * inv_z
         if depth is not None:
-            hidden &= 1.0 / inv_z - self.radius < np.asarray(depth, dtype=float)
-        return hidden
+            hidden &= (1.0 / inv_z - np.asarray(radius, dtype=float)[:, None]
+                       < np.asarray(depth, dtype=float))
+    hidden &= ~gone[:, None]
+    return hidden
 
 
 def checked_tools(tools: Sequence[ToolCylinder]) -> tuple[ToolCylinder, ...]:
@@ -171,10 +194,10 @@ def hidden_by(tools: Sequence[ToolCylinder], cam: CameraModel, uv: np.ndarray,
               depth: np.ndarray | None = None) -> np.ndarray:
     """Which image points ``uv`` (k, 2) of ``cam`` any of ``tools`` hides
     (:meth:`ToolCylinder.hides`; ``depth`` as there)."""
-    hidden = np.zeros(len(uv), dtype=bool)
-    for tool in tools:
-        hidden |= tool.hides(cam, uv, depth)
-    return hidden
+    if not tools:
+        return np.zeros(len(uv), dtype=bool)
+    return cylinders_hide(cam, np.stack([t.a for t in tools]), np.stack([t.b for t in tools]),
+                          np.array([t.radius for t in tools]), uv, depth).any(axis=0)
 
 
 def edge_band(cam: CameraModel, outline: np.ndarray, width_px: float,

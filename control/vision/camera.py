@@ -98,6 +98,16 @@ class CameraModel:
         object.__setattr__(self, "_d14", full)
         tilt = _tilt_matrix(full[12], full[13]) if dist.size == 14 else None
         object.__setattr__(self, "_tilt", tilt)
+        # which distortion terms are there: a term whose coefficients are all zero adds
+        # exactly 0 (or divides by exactly 1), so leaving it out changes no bit, and the
+        # planners project a few points at a time, hundreds of thousands of times a trial
+        object.__setattr__(self, "_rational", bool(np.any(full[5:8] != 0)))
+        object.__setattr__(self, "_prism", bool(np.any(full[8:12] != 0)))
+        # the inverse pose, kept (read-only): asked for on every projection from the
+        # reference frame, and inverting it each time cost a planner a tenth of its time
+        T_cam_ref = invert(T)
+        T_cam_ref.flags.writeable = False
+        object.__setattr__(self, "_T_cam_ref", T_cam_ref)
 
     # -- basic properties -------------------------------------------------------------
     @property
@@ -110,8 +120,9 @@ class CameraModel:
 
     @property
     def T_cam_ref(self) -> np.ndarray:
-        """Pose of the reference frame in this camera's frame."""
-        return invert(self.T_ref_cam)
+        """Pose of the reference frame in this camera's frame (read-only: the camera's
+        own copy)."""
+        return self._T_cam_ref
 
     @property
     def has_distortion(self) -> bool:
@@ -126,9 +137,14 @@ class CameraModel:
         r2 = x * x + y * y
         r4 = r2 * r2
         r6 = r4 * r2
-        radial = (1 + k1 * r2 + k2 * r4 + k3 * r6) / (1 + k4 * r2 + k5 * r4 + k6 * r6)
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + s1 * r2 + s2 * r4
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + s3 * r2 + s4 * r4
+        radial = 1 + k1 * r2 + k2 * r4 + k3 * r6
+        if self._rational:
+            radial = radial / (1 + k4 * r2 + k5 * r4 + k6 * r6)
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        if self._prism:
+            xd = xd + s1 * r2 + s2 * r4
+            yd = yd + s3 * r2 + s4 * r4
         if self._tilt is not None:
             M = self._tilt
             vx = M[0, 0] * xd + M[0, 1] * yd + M[0, 2]

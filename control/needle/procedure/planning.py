@@ -172,11 +172,16 @@ def _meetings(handoffs: Sequence[tuple], G_TN_A: np.ndarray,
     why = {} if why is None else why
     T_A = np.stack([item[0] for item in handoffs]) @ invert(G_TN_A)
     there = reach_all(T_A)
+    # the view rule, the dearer check, asked in batches of the poses the holder reaches
+    held = np.nonzero(there)[0]
+    at = {int(k): j for j, k in enumerate(held)}
+    view = views.why_not_each([handoffs[k][0] for k in held],
+                              [(handoffs[k][1], T_A[k]) for k in held])
     out = []
     for k, item in enumerate(handoffs):
         if not there[k]:
             refused = f"{holder} cannot hold it there"
-        elif seen := views.why_not(item[0], [item[1], T_A[k]]):
+        elif seen := view(at[k]):
             refused = f"hand-off {seen}"
         # the path last: the costliest check, for the few poses that pass the others
         elif T_A0 is not None and not reach_all(np.stack(_path(T_A0, T_A[k]))).all():

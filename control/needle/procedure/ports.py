@@ -151,9 +151,13 @@ def port_pair(needle: Needle, settings: ProcedureSettings | None = None
             # cameras see past its own gripper
             meet: list[tuple] = []
             if _pulls(needle, s, one[B], G_CS @ drive.G_SN[-1], G_CS, point, normal):
-                meet = [item for item in _handoff_poses(
-                    drive, choice.G_TN, normal, s, lambda T: reaches[B].reachable_all(T, m),
-                    views.aim(point)) if not views.why_not(item[0], [item[1]])]
+                items = _handoff_poses(drive, choice.G_TN, normal, s,
+                                       lambda T: reaches[B].reachable_all(T, m),
+                                       views.aim(point))
+                seen = views.why_not_all(np.stack([it[0] for it in items]),
+                                         np.stack([it[1] for it in items])[:, None]
+                                         ) if items else []
+                meet = [it for it, why in zip(items, seen, strict=True) if not why]
             memo[key] = meet
         meet = memo[key]
         if not meet:

@@ -696,7 +696,10 @@ class NeedleProcedure(CellActions):
                 continue
             moves.append((T_s, T_g, turn))
         for strict, incision in ((True, True), (False, True), (False, False)):
-            for T_s, T_g, turn in moves:
-                if not self._view(T_s, [T_g, *others], incision=incision, strict=strict):
+            view = self.views.why_not_each([T_s for T_s, _, _ in moves],
+                                           [(T_g, *others) for _, T_g, _ in moves],
+                                           incision=incision, strict=strict)
+            for k, (_, T_g, turn) in enumerate(moves):
+                if not view(k):
                     return T_g, turn
         return None

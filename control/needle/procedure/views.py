@@ -7,7 +7,7 @@ m, rad."""
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -16,7 +16,7 @@ import numpy as np
 from oralnav.control.geometry import rotation_angle
 from oralnav.control.needle.model import Needle
 from oralnav.control.needle.procedure.settings import ProcedureSettings
-from oralnav.control.needle.refine import hidden_by
+from oralnav.control.needle.refine import cylinders_hide
 from oralnav.control.needle.tracker import ToolCylinder
 from oralnav.control.vision.camera import CameraModel
 
@@ -68,37 +68,111 @@ class ViewRule:
         ``strict``: with room for a pose a few millimetres and degrees off the one
         asked about, ``strict_view_angle`` less face-on angle and ``strict_visible``
         more of the needle in view."""
+        T = np.asarray(T_ref_N, dtype=float)[None]
+        tl = np.asarray(list(tools), dtype=float).reshape(1, -1, 4, 4)
+        return self.why_not_all(T, tl, incision, strict)[0]
+
+    def why_not_all(self, T_ref_N: np.ndarray, tools: np.ndarray | None = None,
+                    incision: bool = False, strict: bool = False) -> list[str]:
+        """:meth:`why_not` for ``N`` needle poses at once (N, 4, 4), each with its own
+        grippers ``tools`` (N, m, 4, 4; ``None``: none): the planners weigh hundreds of
+        hand-off and look poses, and asked one at a time the view rule was a third of a
+        trial's time. Each answer is the one :meth:`why_not` gives: the first refusal in
+        its order (face-on, then per camera: in view, past the grippers, the incision
+        line, the backdrop)."""
         s = self.s
-        pts = self.needle.points(48) @ T_ref_N[:3, :3].T + T_ref_N[:3, 3]
+        T = np.asarray(T_ref_N, dtype=float).reshape(-1, 4, 4)
+        N = len(T)
+        why = [""] * N
+        if N == 0:
+            return why
+        tl = (np.zeros((N, 0, 4, 4)) if tools is None
+              else np.asarray(tools, dtype=float).reshape(N, -1, 4, 4))
+        model = self.needle.points(48)
+        pts = model @ T[:, :3, :3].transpose(0, 2, 1) + T[:, None, :3, 3]   # (N, 48, 3)
         masks = self.masks if self.masks is not None else [None] * len(self.cams)
-        facing = abs(float(T_ref_N[:3, 2] @ self.sight(T_ref_N)))
+        v = T[:, :3, 3] - self.cams[0].T_ref_cam[:3, 3]
+        sight = v / np.linalg.norm(v, axis=1)[:, None]
+        facing = np.abs(np.einsum("ij,ij->i", T[:, :3, 2], sight))
         max_angle = s.max_view_angle - (s.strict_view_angle if strict else 0.0)
         min_visible = min(1.0, s.min_visible + (s.strict_visible if strict else 0.0))
-        if facing < math.cos(max_angle):
-            return "edge-on to the camera"
+        open_ = facing >= math.cos(max_angle)       # not refused yet
+        for k in np.nonzero(~open_)[0]:
+            why[k] = "edge-on to the camera"
+        # the grippers' parts: jaws (tip to heel) and shaft (heel on), per pose and tool
+        tip, z = tl[..., :3, 3], tl[..., :3, 2]                           # (N, m, 3)
+        heel = tip - s.jaw_length * z
+        m_parts = 2 * tl.shape[1]
+        pa = np.stack([tip, heel], axis=2).reshape(N, m_parts, 3)
+        pb = np.stack([heel, tip - s.tool_length * z], axis=2).reshape(N, m_parts, 3)
+        radius = np.tile([s.jaw_radius, s.tool_radius], tl.shape[1])
         m = s.view_margin_px
+
+        def refuse(idx: np.ndarray, bad: np.ndarray, reason: str) -> np.ndarray:
+            """Give the poses ``idx[bad]`` ``reason``; the rest's positions in ``idx``."""
+            for k in idx[bad]:
+                why[k] = reason
+            return np.nonzero(~bad)[0]
+
         for cam, masked in zip(self.cams, masks, strict=True):
-            uv = cam.project_from(cam.T_cam_ref, pts)
-            if not (np.all(np.isfinite(uv)) and np.all(uv >= m)
-                    and np.all(uv[:, 0] <= cam.width - 1 - m)
-                    and np.all(uv[:, 1] <= cam.height - 1 - m)):
-                return "out of view"
-            hidden = np.zeros(len(pts), dtype=bool)
-            for T in tools:
-                hidden |= self.behind_tool(cam, uv, T)
-            if 1.0 - hidden.mean() < min_visible:
-                return "hidden by the grippers"
-            if incision and masked is not None:
+            idx = np.nonzero(open_)[0]
+            if len(idx) == 0:
+                break
+            uv = cam.project_from(cam.T_cam_ref, pts[idx].reshape(-1, 3)).reshape(
+                len(idx), -1, 2)
+            with np.errstate(invalid="ignore"):
+                inside = (np.isfinite(uv).all(axis=(1, 2)) & (uv >= m).all(axis=(1, 2))
+                          & (uv[..., 0] <= cam.width - 1 - m).all(axis=1)
+                          & (uv[..., 1] <= cam.height - 1 - m).all(axis=1))
+            keep = refuse(idx, ~inside, "out of view")
+            idx, uv = idx[keep], uv[keep]
+            hidden = np.zeros(uv.shape[:2], dtype=bool)
+            if m_parts and len(idx):
+                P = len(idx) * m_parts
+                hid = cylinders_hide(cam, pa[idx].reshape(P, 3), pb[idx].reshape(P, 3),
+                                     np.tile(radius, len(idx)),
+                                     np.repeat(uv, m_parts, axis=0))
+                hidden = hid.reshape(len(idx), m_parts, -1).any(axis=1)
+            bad = 1.0 - hidden.mean(axis=1) < min_visible
+            keep = refuse(idx, bad, "hidden by the grippers")
+            idx, uv, hidden = idx[keep], uv[keep], hidden[keep]
+            if incision and masked is not None and len(idx):
                 # the features ignore the line's band (a dark line is not the wire)
                 px = np.round(uv).astype(int)
-                hidden |= masked[px[:, 1], px[:, 0]]
-                if 1.0 - hidden.mean() < min_visible:
-                    return "hidden by the incision line"
-            if self.outline is not None:
-                hidden |= ~self.backdrop(cam, pts)
-                if 1.0 - hidden.mean() < min_visible:
-                    return "hidden or not against the tissue"
-        return ""
+                hidden = hidden | masked[px[..., 1], px[..., 0]]
+                bad = 1.0 - hidden.mean(axis=1) < min_visible
+                keep = refuse(idx, bad, "hidden by the incision line")
+                idx, hidden = idx[keep], hidden[keep]
+            if self.outline is not None and len(idx):
+                back = self.backdrop(cam, pts[idx].reshape(-1, 3)).reshape(len(idx), -1)
+                hidden = hidden | ~back
+                bad = 1.0 - hidden.mean(axis=1) < min_visible
+                refuse(idx, bad, "hidden or not against the tissue")
+            open_ = np.array([w == "" for w in why])
+        return why
+
+    def why_not_each(self, T_ref_N: Sequence[np.ndarray],
+                     tools: Sequence[Sequence[np.ndarray]], incision: bool = False,
+                     strict: bool = False, first: int = 8) -> Callable[[int], str]:
+        """:meth:`why_not` of pose ``k`` of ``T_ref_N`` (with its grippers ``tools[k]``),
+        as a function of ``k``, for a planner that takes candidates in order and stops at
+        the first few it can use: the answers are worked out in batches
+        (:meth:`why_not_all`) of ``first`` poses from the one asked, doubling each time,
+        so neither one pose at a time nor all of them."""
+        known: dict[int, str] = {}
+        size = [first]
+
+        def why(k: int) -> str:
+            if k not in known:
+                ks = range(k, min(k + size[0], len(T_ref_N)))
+                size[0] *= 2
+                answers = self.why_not_all(np.stack([T_ref_N[i] for i in ks]),
+                                           np.stack([np.stack(list(tools[i])) if
+                                                     len(tools[i]) else np.zeros((0, 4, 4))
+                                                     for i in ks]), incision, strict)
+                known.update(zip(ks, answers, strict=True))
+            return known[k]
+        return why
 
     def tool_parts(self, T_ref_T: np.ndarray) -> tuple[ToolCylinder, ToolCylinder]:
         """The gripper at ``T_ref_T`` as the parts that may hide the needle: its jaws (a
@@ -109,13 +183,6 @@ class ViewRule:
         heel = tip - s.jaw_length * z
         return (ToolCylinder(tip, heel, s.jaw_radius),
                 ToolCylinder(heel, tip - s.tool_length * z, s.tool_radius))
-
-    def behind_tool(self, cam: CameraModel, uv: np.ndarray, T_ref_T: np.ndarray
-                    ) -> np.ndarray:
-        """Which image points ``uv`` (k, 2) the gripper at ``T_ref_T`` may hide. Depth is
-        ignored, so a point in front of the tool counts as hidden too: the estimate errs
-        toward refusing a view."""
-        return hidden_by(self.tool_parts(T_ref_T), cam, uv)
 
     def backdrop(self, cam: CameraModel, pts: np.ndarray) -> np.ndarray:
         """Which of ``pts`` (k, 3, ref) ``cam`` sees against the tissue: the ray through
