@@ -51,10 +51,10 @@ def _reference(views, T_ref_N: np.ndarray, tools, incision: bool, strict: bool) 
 
 def test_batched_view_answers_are_the_rules_pose_for_pose():
     """Issue 36 item 3: hand-off-like candidates about trial 3's needle (turned, raised,
-    shifted across the view, some out of it, some over the incision), each with both grippers and with one
-    moved over the needle, get from one batch, and from the lazy batches the planners
-    use, the answer the rule gives for that pose alone, for each strictness; the
-    candidates draw every kind of refusal."""
+    shifted across the view, some out of it, some over the incision), each with both
+    grippers or with one moved over the needle, get from one batch, and from the lazy
+    batches the planners use, the answer the rule gives for that pose alone, for each
+    strictness; the candidates draw every kind of refusal."""
     cell, proc = _procedure(3)
     views = proc.views
     T_N = cell.truth().T_ref_needle
