@@ -49,6 +49,27 @@ def rotation_exp(v: np.ndarray) -> np.ndarray:
             + ((1.0 - math.cos(angle)) / (angle * angle)) * (K @ K))
 
 
+def geodesic(R0: np.ndarray, R1: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """The rotations a fraction ``f`` (n,) of the way along the geodesic from ``R0`` to
+    ``R1`` (3x3 each): ``R0 exp(f log(R0^T R1))``, (n, 3, 3); what SciPy's ``Slerp``
+    between the two gives, for all fractions at once on one axis (a planner checks
+    paths of tens of poses thousands of times a trial, and Slerp's objects cost more
+    than the path)."""
+    f = np.asarray(f, dtype=float).reshape(-1)
+    v = rotation_log(R0.T @ R1)
+    angle = math.sqrt(float(v @ v))
+    if angle < _SMALL:
+        K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+        E = np.eye(3) + f[:, None, None] * K + (0.5 * f * f)[:, None, None] * (K @ K)
+    else:
+        u = v / angle
+        K = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
+        a = f * angle
+        E = (np.eye(3) + np.sin(a)[:, None, None] * K
+             + (1.0 - np.cos(a))[:, None, None] * (K @ K))
+    return R0 @ E
+
+
 def step_toward(T_current: np.ndarray, T_goal: np.ndarray, max_distance: float,
                 max_angle: float) -> tuple[np.ndarray, float]:
     """The pose a fraction ``s`` of the way from ``T_current`` to ``T_goal`` (4x4, same

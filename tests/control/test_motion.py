@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from oralnav.control.motion import rotation_exp, rotation_log, step_toward
+from oralnav.control.motion import geodesic, rotation_exp, rotation_log, step_toward
 
 
 def _pose(rng: np.random.Generator, angle: float | None = None) -> np.ndarray:
@@ -59,3 +59,19 @@ def test_step_matches_slerp_and_respects_both_bounds() -> None:
         if s >= 1.0:
             break
     assert np.array_equal(T, Tb)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-8, 0.02, 1.0, 3.0, np.pi - 1e-5, None])
+def test_geodesic_is_slerp_at_every_fraction(angle: float | None) -> None:
+    """Issue 36 item 3 (the planners' paths without SciPy's per-call cost): the
+    rotations along ``geodesic`` are SciPy's Slerp between the same two, at every
+    fraction, for turns from none to nearly a half turn; the path ends on the goal."""
+    rng = np.random.default_rng(11)
+    f = np.linspace(0.0, 1.0, 17)
+    for _ in range(20):
+        R0 = _pose(rng)[:3, :3]
+        R1 = R0 @ _pose(rng, angle)[:3, :3]
+        slerp = Slerp([0.0, 1.0], Rotation.from_matrix([R0, R1]))(f).as_matrix()
+        got = geodesic(R0, R1, f)
+        np.testing.assert_allclose(got, slerp, atol=1e-9)
+        np.testing.assert_allclose(got[-1], R1, atol=1e-9)

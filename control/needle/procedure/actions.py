@@ -152,13 +152,15 @@ class CellActions:
     def _lowest(self, poses: Sequence[np.ndarray], G_TN: np.ndarray) -> float:
         """The lowest height (m) over the tissue plane of the needle held at ``G_TN`` by
         a gripper at any of ``poses`` (its ``T_ref_T``)."""
+        if len(poses) == 0:
+            return math.inf
         pts = self.needle.points(48)
         base = self.incision.mean(axis=0)
-        low = math.inf
-        for T in poses:
-            P = T @ G_TN
-            low = min(low, float(((pts @ P[:3, :3].T + P[:3, 3] - base) @ self.normal).min()))
-        return low
+        P = np.stack(list(poses)) @ G_TN
+        # every point's height at every pose, (R p + t - base) . n = p . R^T n + (t - base) . n
+        h = pts @ (P[:, :3, :3].transpose(0, 2, 1) @ self.normal).T \
+            + ((P[:, :3, 3] - base) @ self.normal)[None, :]
+        return float(h.min())
 
     def _carry(self, arm: str, goal: np.ndarray, G_TN: np.ndarray, what: str) -> None:
         """Move ``arm``, holding the needle at ``G_TN``, to ``goal`` without the needle
@@ -356,6 +358,12 @@ class CellActions:
         """Why the cameras would not see the needle well at ``T_ref_N`` (:class:`ViewRule`;
         "" when they would)."""
         return self.views.why_not(T_ref_N, tools, incision, strict)
+
+    def _view_each(self, T_ref_N: Sequence[np.ndarray], tools: Sequence[Sequence[np.ndarray]],
+                   incision: bool = False, strict: bool = False) -> Callable[[int], str]:
+        """:meth:`_view` of candidate ``k`` of ``T_ref_N`` (with ``tools[k]``) as a
+        function of ``k``, worked out in batches (:meth:`ViewRule.why_not_each`)."""
+        return self.views.why_not_each(T_ref_N, tools, incision, strict)
 
     def _tool_parts(self, T_ref_T: np.ndarray) -> tuple[ToolCylinder, ToolCylinder]:
         return self.views.tool_parts(T_ref_T)

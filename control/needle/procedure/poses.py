@@ -8,9 +8,9 @@ import math
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from oralnav.control.geometry import make_transform
+from oralnav.control.motion import geodesic, rotation_log
 
 
 def translation(v: np.ndarray) -> np.ndarray:
@@ -51,14 +51,13 @@ def _path(T0: np.ndarray, T1: np.ndarray, n: int | None = None) -> list[np.ndarr
     """``n`` poses along the straight-line, slerp path from ``T0`` to ``T1`` (the cell's
     motion), ``T1`` last: a goal the arm reaches by a path it cannot follow is no goal.
     By default at least 8, and one per ``_PATH_STEP`` and per ``_PATH_TURN``."""
-    rots = Rotation.from_matrix(np.stack([T0[:3, :3], T1[:3, :3]]))
     if n is None:
-        turn = float((rots[0].inv() * rots[1]).magnitude())
+        turn = float(np.linalg.norm(rotation_log(T0[:3, :3].T @ T1[:3, :3])))
         dist = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
         n = max(8, math.ceil(dist / _PATH_STEP), math.ceil(turn / _PATH_TURN))
     f = np.arange(1, n + 1) / n
     T = np.zeros((n, 4, 4))
-    T[:, :3, :3] = Slerp([0.0, 1.0], rots)(f).as_matrix()
+    T[:, :3, :3] = geodesic(T0[:3, :3], T1[:3, :3], f)
     T[:, :3, 3] = T0[:3, 3] + f[:, None] * (T1[:3, 3] - T0[:3, 3])
     T[:, 3, 3] = 1.0
     return list(T)

@@ -687,18 +687,18 @@ class NeedleProcedure(CellActions):
         candidates = [item for T_m in _shifted(T_N, self.normal, toward, s.show_shifts)
                       for item in _turned_and_raised(T_m, self.normal, s.show_heights)]
         moves = []
-        for T_s, turn, _ in candidates:
-            T_g = T_s @ G_NT
-            if not (self._reach(arm, [T_g])[0]
-                    and self._reach(arm, _path(here, T_g), leave)[0]):
+        goals = np.stack([T_s for T_s, _, _ in candidates]) @ G_NT
+        there = self.cell.reachable_all(arm, goals, s.reach_margin)   # all goals at once
+        for (T_s, turn, _), T_g, ok in zip(candidates, goals, there, strict=True):
+            if not (ok and self._reach(arm, _path(here, T_g), leave)[0]):
                 continue
             if self._lowest(_path(here, T_g, 32), G_TN) < s.carry_clearance:
                 continue
             moves.append((T_s, T_g, turn))
         for strict, incision in ((True, True), (False, True), (False, False)):
-            view = self.views.why_not_each([T_s for T_s, _, _ in moves],
-                                           [(T_g, *others) for _, T_g, _ in moves],
-                                           incision=incision, strict=strict)
+            view = self._view_each([T_s for T_s, _, _ in moves],
+                                   [(T_g, *others) for _, T_g, _ in moves],
+                                   incision=incision, strict=strict)
             for k, (_, T_g, turn) in enumerate(moves):
                 if not view(k):
                     return T_g, turn

@@ -220,8 +220,10 @@ def _turns(step_deg: float = 30.0, axes: int = 40) -> list[np.ndarray]:
     return out
 
 
-#: The hand-off's candidate turns of the needle from its drive start orientation.
+#: The hand-off's candidate turns of the needle from its drive start orientation, and
+#: their angles (rad).
 _HANDOFF_TURNS = _turns()
+_HANDOFF_ANGLES = tuple(rotation_angle(turn, np.eye(3)) for turn in _HANDOFF_TURNS)
 
 
 def _turned_and_raised(T_N: np.ndarray, normal: np.ndarray, heights: Sequence[float]
@@ -229,8 +231,7 @@ def _turned_and_raised(T_N: np.ndarray, normal: np.ndarray, heights: Sequence[fl
     """Needle poses near ``T_N`` for a hand-off or a look: turned about the needle's
     centre by each of :data:`_HANDOFF_TURNS` (the least first) and raised along
     ``normal`` by each of ``heights`` (m). Items: ``(T_ref_N, turn (rad), height)``."""
-    for turn in _HANDOFF_TURNS:
-        angle = rotation_angle(turn, np.eye(3))
+    for turn, angle in zip(_HANDOFF_TURNS, _HANDOFF_ANGLES, strict=True):
         for h in heights:
             T = T_N.copy()
             T[:3, :3] = turn @ T_N[:3, :3]
