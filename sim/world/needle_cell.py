@@ -216,9 +216,46 @@ class ArmReach:
                 if lp < math.pi / 2 and ly < math.pi / 2 else math.pi)
         never = far & (bend0 - lean > most)
         out = ok & sure
-        for i in np.nonzero(ok & ~sure & ~never)[0]:
-            out[i] = self.reachable(T[i], margin)[0]
+        doubt = np.nonzero(ok & ~sure & ~never)[0]
+        if len(doubt):
+            out[doubt] = self._joints_within(T[doubt], margin)
         return out
+
+    def _joints_within(self, T: np.ndarray, margin: float) -> np.ndarray:
+        """Whether the wrist's pitch and yaw at each of the poses ``T`` (k x 4 x 4) lie
+        ``margin`` inside their limits: :meth:`wrist`'s fixed-point rounds on all the
+        poses at once (each pose's rounds stop where its own would), for the poses the
+        quick bounds leave in doubt, a few hundred thousand a trial. A pose whose wrist
+        would sit on the RCM goes through :meth:`wrist` alone, which names it."""
+        R, tip = T[:, :3, :3], T[:, :3, 3]
+        hinge = tip - self.yaw_to_tip * R[:, :, 2]
+        s = hinge - self.rcm
+        pitch = np.zeros(len(T))
+        yaw = np.zeros(len(T))
+        active = np.ones(len(T), dtype=bool)
+        for _ in range(8):
+            n = np.sqrt(np.einsum("ij,ij->i", s, s))
+            if np.any(active & (n < 1e-9)):
+                return np.array([self.reachable(Ti, margin)[0] for Ti in T])
+            u = s / np.where(n > 0, n, 1.0)[:, None]
+            # the tool in the shaft's frame: its bottom row is the shaft's axis in R
+            m = np.einsum("ij,ijk->ik", u, R)
+            p_new = np.arcsin(np.clip(-m[:, 0], -1.0, 1.0))
+            y_new = np.arctan2(m[:, 1], m[:, 2])
+            link = np.einsum("ijk,ik->ij", R, np.stack(
+                [np.zeros(len(T)), np.sin(y_new), np.cos(y_new)], axis=1))
+            moved = hinge - self.pitch_to_yaw * link - self.rcm
+            mn = np.sqrt(np.einsum("ij,ij->i", moved, moved))
+            d = moved / np.maximum(mn, 1e-12)[:, None] - u
+            step = np.sqrt(np.einsum("ij,ij->i", d, d))
+            pitch = np.where(active, p_new, pitch)
+            yaw = np.where(active, y_new, yaw)
+            s = np.where(active[:, None], moved, s)
+            active &= ~(step < 1e-9)
+            if not active.any():
+                break
+        return ((np.abs(pitch) <= self.max_wrist_pitch - margin)
+                & (np.abs(yaw) <= self.max_wrist_yaw - margin))
 
     def reachable(self, T_ref_tool: np.ndarray, margin: float = 0.0) -> tuple[bool, str]:
         """``(ok, reason)``: whether the arm can put its tool at ``T_ref_tool`` (4x4, m)
