@@ -55,6 +55,13 @@ def worker_environ(_item: object) -> dict[str, str | None]:
 
 
 
+def numba_threads(_item: object) -> int:
+    """How many threads this process's numba kernels run on (run on a worker)."""
+    import numba
+
+    return numba.get_num_threads()
+
+
 def dask_setting(key: str) -> object:
     """This process's Dask setting ``key`` (run on a worker)."""
     import dask
