@@ -54,7 +54,10 @@ def _path(T0: np.ndarray, T1: np.ndarray, n: int | None = None) -> list[np.ndarr
     if n is None:
         turn = float(np.linalg.norm(rotation_log(T0[:3, :3].T @ T1[:3, :3])))
         dist = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
-        n = max(8, math.ceil(dist / _PATH_STEP), math.ceil(turn / _PATH_TURN))
+        # the cell's own rounding of its increments: a turn of an exact number of
+        # increments (the hand-off's and the show pose's turns are multiples of 30 deg)
+        # is checked at the cell's poses, not one more or less by the last bit
+        n = max(8, math.ceil(dist / _PATH_STEP - 1e-9), math.ceil(turn / _PATH_TURN - 1e-9))
     f = np.arange(1, n + 1) / n
     T = np.zeros((n, 4, 4))
     T[:, :3, :3] = geodesic(T0[:3, :3], T1[:3, :3], f)
