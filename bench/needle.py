@@ -143,11 +143,19 @@ def _arm_error_json(arm_error: tuple[float, float] | None) -> dict[str, float] |
     return None if arm_error is None else {"mm": arm_error[0], "deg": arm_error[1]}
 
 
-def run_trial(seed: int, arm_error: tuple[float, float] | None = None) -> dict[str, Any]:
+def run_trial(seed: int, arm_error: tuple[float, float] | None = None,
+              servo: bool = False) -> dict[str, Any]:
     """One trial: the procedure on ``trial_cell(seed)``, each arm with a kinematic error of
-    ``arm_error`` (mm, deg) when given; its record (JSON-able)."""
+    ``arm_error`` (mm, deg) when given, the drive servoed on the tracked needle with
+    ``servo`` (``ProcedureSettings.drive_servo``); its record (JSON-able)."""
     from oralnav.config.rig import trial_rig
-    from oralnav.control.needle.procedure import NeedleProcedure, port_drives, port_pair
+    from oralnav.control.needle.procedure import (
+        NeedleProcedure,
+        ProcedureSettings,
+        port_drives,
+        port_pair,
+    )
+    from oralnav.control.needle.servo import ServoSettings
     from oralnav.sim.world.needle_trials import CT1, trial_cell
     from oralnav.sim.world.needle_truth import check_truth
 
@@ -158,12 +166,14 @@ def run_trial(seed: int, arm_error: tuple[float, float] | None = None) -> dict[s
              else (arm_error[0] * 1e-3, math.radians(arm_error[1])))
     cell, info = trial_cell(seed, rig=trial_rig(), drivable=port_drives(CT1),
                             workable=port_pair(CT1), arm_error=error)
-    proc = NeedleProcedure(cell, info.incision, info.surface_normal,
+    settings = ProcedureSettings(drive_servo=ServoSettings() if servo else None)
+    proc = NeedleProcedure(cell, info.incision, info.surface_normal, settings,
                            surface_outline=info.surface_outline, truth_check=check_truth)
     results = proc.run_all()
     steps, failure = first_failure(results)
     return {"seed": seed, "steps": steps, "failure": failure,
             **({} if arm_error is None else {"arm_error": _arm_error_json(arm_error)}),
+            **({"servo": True} if servo else {}),
             "seconds": round(time.perf_counter() - t0, 2),
             "results": [r.to_json() for r in results]}
 
@@ -182,7 +192,8 @@ def classify(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def _kept_trials(store: Path | None, seeds: Sequence[int],
-                 arm_error: tuple[float, float] | None = None) -> dict[int, dict[str, Any]]:
+                 arm_error: tuple[float, float] | None = None,
+                 servo: bool = False) -> dict[int, dict[str, Any]]:
     """The records of ``seeds`` already in ``store`` (one ``SEED.json`` each) run with
     ``arm_error``; a file that does not read back (a write cut short), or a record of
     other settings, is left out, so its trial runs again."""
@@ -195,7 +206,8 @@ def _kept_trials(store: Path | None, seeds: Sequence[int],
         except (OSError, ValueError):
             continue
         if (isinstance(rec, dict) and rec.get("seed") == s
-                and rec.get("arm_error") == _arm_error_json(arm_error)):
+                and rec.get("arm_error") == _arm_error_json(arm_error)
+                and rec.get("servo", False) == servo):
             kept[s] = rec
     return kept
 
@@ -203,14 +215,15 @@ def _kept_trials(store: Path | None, seeds: Sequence[int],
 def run(trials: int, seed: int, workers: int | None = None,
         progress: bool = True, scheduler: str | None = None,
         store: Path | None = None,
-        arm_error: tuple[float, float] | None = None) -> dict[str, Any]:
+        arm_error: tuple[float, float] | None = None, servo: bool = False) -> dict[str, Any]:
     """The Monte Carlo over ``trials`` seeds from ``seed``; the summary document. The
     trials run on the engine ``scheduler`` names (``bench/executor.py``: by default a
     local process pool of ``workers``; a trial is a pure function of its seed).
     ``store``: a folder each finished trial's record is written to as it comes in, and
     read back from on the next run, so an interrupted Monte Carlo resumes where it
     stopped (the caller keeps it to one commit: a record is the code's as much as the
-    seed's). ``arm_error``: each arm's kinematic error (mm, deg), :func:`run_trial`."""
+    seed's). ``arm_error``: each arm's kinematic error (mm, deg), ``servo``: the drive
+    servoed, as :func:`run_trial`'s."""
     from oralnav.bench.executor import TrialRunner
     from oralnav.config.loader import atomic_write_text
     from oralnav.control.needle.procedure import step_rates
@@ -219,7 +232,7 @@ def run(trials: int, seed: int, workers: int | None = None,
         raise ValueError(f"needle bench: trials must be >= 1, got {trials}")
     seeds = list(range(seed, seed + trials))
     arm_error = arm_error_checked(arm_error)
-    kept = _kept_trials(store, seeds, arm_error)
+    kept = _kept_trials(store, seeds, arm_error, servo)
     todo = [s for s in seeds if s not in kept]
     if scheduler is None:
         workers = max(1, min(workers or os.cpu_count() or 1, max(len(todo), 1)))
@@ -247,8 +260,8 @@ def run(trials: int, seed: int, workers: int | None = None,
             print(f"needle: {len(todo)} trials on {runner.name}"
                   + (f", dashboard {runner.dashboard}" if runner.dashboard else ""),
                   file=sys.stderr, flush=True)
-        trial = run_trial if arm_error is None else functools.partial(
-            run_trial, arm_error=arm_error)
+        trial = (run_trial if arm_error is None and not servo
+                 else functools.partial(run_trial, arm_error=arm_error, servo=servo))
         fresh = runner.map(trial, todo, on_result=report) if todo else []
         engine, workers = runner.name, runner.workers
     ran = dict(zip(todo, fresh, strict=True))
@@ -259,7 +272,7 @@ def run(trials: int, seed: int, workers: int | None = None,
     return {"bench": "needle", "trials": rates["trials"], "overall": rates["overall"],
             "overall_interval": list(wilson(succeeded, len(records))),
             "split": seed_split(seeds[0], seeds[-1]),
-            "arm_error": _arm_error_json(arm_error),
+            "arm_error": _arm_error_json(arm_error), "servo": servo,
             "steps": rates["steps"], "individual": rates["individual"],
             "failures": classify(records), "failure_causes": dict(causes),
             "paper": PAPER, "target_overall": 0.90, "seed": seed,
@@ -278,20 +291,23 @@ def summary(doc: dict[str, Any]) -> dict[str, Any]:
 def main(out: Path, quick: bool = False, trials: int | None = None, seed: int = 0,
          workers: int | None = None, scheduler: str | None = None,
          validation: bool = False,
-         arm_error: tuple[float, float] | None = None) -> dict[str, Any]:
+         arm_error: tuple[float, float] | None = None, servo: bool = False
+         ) -> dict[str, Any]:
     """Run the Monte Carlo (``quick``: 10 trials, ``validation``: ``VALIDATION_TRIALS``
     from ``VALIDATION_SEED``, else 200 unless ``trials`` is given; ``arm_error``: each
-    arm's kinematic error, mm and deg) and write ``needle.json`` into ``out``."""
+    arm's kinematic error, mm and deg; ``servo``: the drive servoed) and write
+    ``needle.json`` into ``out``."""
     if validation:
         seed = VALIDATION_SEED
     n = trials if trials is not None else (
         10 if quick else VALIDATION_TRIALS if validation else 200)
-    doc = run(n, seed, workers, scheduler=scheduler, arm_error=arm_error)
+    doc = run(n, seed, workers, scheduler=scheduler, arm_error=arm_error, servo=servo)
     out.mkdir(parents=True, exist_ok=True)
     (out / "needle.json").write_text(json.dumps(doc, indent=1) + "\n")
     lo, hi = doc["overall_interval"]
     err = ("" if arm_error is None
            else f" with {arm_error[0]:g} mm / {arm_error[1]:g} deg arm errors")
+    err += ", the drive servoed" if servo else ""
     print(f"needle: {doc['trials']} trials on {doc['split']} seeds {seed}-{seed + n - 1}{err}, "
           f"overall {100 * doc['overall']:.1f} % ({100 * CONFIDENCE:.0f} % interval "
           f"{100 * lo:.1f}-{100 * hi:.1f} %; "

@@ -17,7 +17,7 @@
     oralnav replay FILE.mcap [--json]
     oralnav bench navigation|control|calibration|planning [--quick] --out DIR
     oralnav bench needle [--trials N] [--seed S | --validation] [--workers W] [--arm-error MM DEG]
-                         [--scheduler ADDRESS] [--quick] [--tracking]
+                         [--servo] [--scheduler ADDRESS] [--quick] [--tracking]
                          --out DIR [--json]
     oralnav bench faults [--quick] --out DIR [--json]
     oralnav bench busy-demo --out DIR [--runs N] [--busy N] [--json]
@@ -453,7 +453,7 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
         doc = needle.main(Path(args.out), quick=args.quick, trials=args.trials,
                           seed=args.seed or 0, workers=args.workers,
                           scheduler=args.scheduler, validation=args.validation,
-                          arm_error=arm_error)
+                          arm_error=arm_error, servo=args.servo)
     except SchedulerError as exc:
         raise UsageError(str(exc)) from None
     s = needle.summary(doc)
@@ -729,6 +729,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="give each arm a kinematic error: its tool MM and DEG away from "
                          "where it reports it (a random direction and axis per arm and "
                          "trial, drawn apart from the layout; default: none)")
+    nd.add_argument("--servo", action="store_true",
+                    help="servo the drive on the needle tracked during it (the procedure's "
+                         "drive_servo; default: open-loop, as planned)")
     nd.add_argument("--quick", action="store_true", help="fewer trials")
     nd.add_argument("--out", required=True, help="folder for needle.json (and charts)")
     nd.add_argument("--json", action="store_true",

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 from oralnav.control.errors import NeedleError
 from oralnav.control.needle.grasp import GraspSettings, SurfaceGraspSettings
+from oralnav.control.needle.servo import ServoSettings
 
 
 @dataclass(frozen=True)
@@ -63,7 +64,11 @@ class ProcedureSettings:
     a path between planned poses, stay in reach (the moves and the checks of the grasp
     actually made use the limits themselves). ``placement_tolerance``: how far the tracked needle's
     entry and exit (its arc's crossings of the tissue surface) may lie from the plan's
-    (ND fails otherwise), and in the truth check the true ones.
+    (ND fails otherwise), and in the truth check the true ones. ``drive_servo``: the
+    drive corrected from the needle tracked during it (:mod:`~oralnav.control.needle.servo`,
+    its settings; ``None``, the default, drives open-loop), looking after every
+    ``servo_every`` drive poses and at the last until the servo says done, at most
+    ``servo_final`` corrections there.
     """
 
     depth: float = 0.005
@@ -114,6 +119,9 @@ class ProcedureSettings:
     max_sigma_position: float = 0.0005
     max_sigma_angle: float = math.radians(2.5)
     seed: int = 0
+    drive_servo: ServoSettings | None = None
+    servo_every: int = 4
+    servo_final: int = 6
     # jaws that close along y_T hold the wire along x_T (w1 = +-pi/2); then the needle's
     # drive turn is mostly a roll about the gripper axis only if the shaft lies near the
     # needle's axis, close to the tissue plane: the elevation floor is relaxed and the
@@ -149,6 +157,9 @@ class ProcedureSettings:
         if not 0.0 <= self.suture_at <= 1.0:
             raise NeedleError(f"needle procedure: suture_at must be in [0, 1], got "
                               f"{self.suture_at}")
+        if self.servo_every < 1 or self.servo_final < 0:
+            raise NeedleError(f"needle procedure: servo_every must be >= 1 and servo_final "
+                              f">= 0, got {self.servo_every}, {self.servo_final}")
         if self.drive_poses < 2 or self.pull_poses < 2 or self.updates < 1:
             raise NeedleError("needle procedure: drive_poses and pull_poses must be >= 2, "
                               "updates >= 1")

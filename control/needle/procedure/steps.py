@@ -41,6 +41,7 @@ from oralnav.control.needle.procedure.poses import _BACK_OFF_TILTS, _path, back_
 from oralnav.control.needle.procedure.results import STEPS, StepFailed, StepResult, _refuse
 from oralnav.control.needle.procedure.settings import ProcedureSettings
 from oralnav.control.needle.procedure.views import ViewRule, _shifted, _turned_and_raised
+from oralnav.control.needle.servo import HeldNeedleServo, Seen, ServoStop
 from oralnav.control.needle.tracker import (
     FilterSettings,
     NeedleTrack,
@@ -439,8 +440,7 @@ class NeedleProcedure(CellActions):
         # else: the gripper may hide the needle here; the grasp seen before the approach
         # moved rigidly with the jaws, so the drive keeps it
         T_app = self.cell.gripper_pose(B)
-        for k, T in enumerate(drive.G_PT):
-            self._move(B, T, f"drive pose {k + 1} of {len(drive.G_PT)}")
+        servoed = self._drive_along(B, drive)
         self.in_tissue = True
         # from here the tissue hides the needle's middle: the tracker must not take it
         # for missing wire
@@ -456,7 +456,7 @@ class NeedleProcedure(CellActions):
         # 0.1 mm of the plan. What it sees here is reported
         self.tip_plan = tip_plan
         seen = self._exit_error(tr.pose, "drive") if tr.converged else None
-        return {"grasp_phi_deg": round(math.degrees(choice.phi), 2),
+        return {**servoed, "grasp_phi_deg": round(math.degrees(choice.phi), 2),
                 "min_tip_clearance_mm": round(choice.min_tip_clearance * 1e3, 2),
                 "tip_seen_from_plan_mm": round(float(np.linalg.norm(tip_seen - tip_plan))
                                                * 1e3, 3),
@@ -464,6 +464,67 @@ class NeedleProcedure(CellActions):
                 "tracked_after_drive": tr.converged,
                 "seen_in_the_jaws": ("not converged" if not tr.converged
                                      else "as planned" if seen is None else str(seen))}
+
+    def _drive_along(self, arm: str, drive: Drive) -> dict[str, Any]:
+        """Move ``arm`` along the drive's gripper poses ``G_PT``. Open-loop (no
+        ``drive_servo``): as planned. Servoed: the arm's reported poses are wrong by its
+        kinematic error, and the arc a rotation of the reported tool sweeps a displaced
+        arc; so every ``servo_every`` poses, and at the last until it is reached, the
+        needle is tracked where it is and :class:`HeldNeedleServo` turns the error of its
+        tip from the planned needle pose there (``G_PS G_SN``) into a correction that
+        every later pose carries too. A servo guard (a lost or uncertain track, a jump, no
+        progress) or a corrected pose out of reach stops the drive where it is, naming
+        the cause. Returns the servo's figures (none open-loop)."""
+        s = self.s
+        n = len(drive.G_PT)
+        if s.drive_servo is None:
+            for k, T in enumerate(drive.G_PT):
+                self._move(arm, T, f"drive pose {k + 1} of {n}")
+            return {}
+        goals = drive.G_PS @ drive.G_SN                  # the needle's planned poses
+        servo = HeldNeedleServo(goals[0], self.needle.tip, s.drive_servo)
+        # the tip is in the tissue from the first poses on: the tracker must not take the
+        # part under the surface for missing wire
+        self.tracker.set_occluder(TissuePlane(self.incision.mean(axis=0), self.normal))
+        D = np.eye(4)                   # the correction every reported pose carries
+        at_frame = self.cell.gripper_pose(arm)   # the reported tool at the last look
+        errors: list[float] = []
+        lags: list[float] = []
+
+        def go(T: np.ndarray, what: str) -> None:
+            ok, why = self._reach(arm, [T], 0.0)
+            if not ok:
+                raise StepFailed("out_of_reach", f"drive: {what} leaves {arm!r}'s reach "
+                                                 f"({why})")
+            self._move(arm, T, what)
+
+        for k in range(n):
+            go(D @ drive.G_PT[k], f"drive pose {k + 1} of {n}")
+            if (k + 1) % s.servo_every and k < n - 1:
+                continue
+            servo.goal = goals[k]
+            for attempt in range(1 + (s.servo_final if k == n - 1 else 0)):
+                now = self.cell.gripper_pose(arm)
+                moved = now @ invert(at_frame)
+                tr = self._look(moved)
+                stamp = time.monotonic()
+                try:
+                    cmd = servo.update(Seen.from_track(tr, stamp), stamp, tool_motion=moved)
+                except ServoStop as exc:
+                    raise StepFailed(f"servo_{exc.cause}",
+                                     f"drive pose {k + 1} of {n}: {exc.detail}") from None
+                lags.append(time.monotonic() - stamp)
+                at_frame = now
+                errors.append(cmd.shift)
+                if cmd.done:
+                    break
+                D = cmd.delta @ D
+                go(D @ drive.G_PT[k], f"drive pose {k + 1} of {n}, correction {attempt + 1}")
+        return {"servo_looks": len(errors),
+                "servo_first_error_mm": round(errors[0] * 1e3, 3),
+                "servo_max_error_mm": round(max(errors) * 1e3, 3),
+                "servo_last_error_mm": round(errors[-1] * 1e3, 3),
+                "servo_correction_mm": round(float(np.linalg.norm(D[:3, 3])) * 1e3, 3)}
 
     def _arc_under(self, T_N: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:func:`_arc_under` on this procedure's tissue surface."""
