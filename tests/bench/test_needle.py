@@ -84,9 +84,9 @@ def test_an_arm_error_reaches_every_trial_and_is_recorded(monkeypatch, tmp_path,
     assert "with 2 mm / 1 deg arm errors" in capsys.readouterr().err
 
 
-def _recording_trial(seed: int, arm_error=None) -> dict:
+def _recording_trial(seed: int, arm_error=None, servo: bool = False) -> dict:
     """A stand-in trial (module level: it crosses to pool workers) that records the arm
-    error it was given, the way run_trial does."""
+    error and the servo setting it was given, the way run_trial does."""
     import os
 
     steps = dict.fromkeys(("NG", "NH", "ND", "NR", "NP"), True)
@@ -94,4 +94,24 @@ def _recording_trial(seed: int, arm_error=None) -> dict:
            "results": []}
     if arm_error is not None:
         rec["arm_error"] = {"mm": arm_error[0], "deg": arm_error[1]}
+    if servo:
+        rec["servo"] = True
     return rec
+
+
+def test_a_servoed_run_reaches_every_trial_and_is_recorded(monkeypatch, tmp_path, capsys):
+    """Issue 36 item 1 (open-loop and servoed side by side): ``servo`` reaches each trial
+    on a two-process pool, the summary, the records and stderr say it, and records of an
+    open-loop run are run again rather than kept, and the other way round."""
+    store = tmp_path / "store"
+    monkeypatch.setattr(needle, "run_trial", _recording_trial)
+    open_loop = needle.run(2, 0, workers=2, progress=False, store=store)
+    assert open_loop["servo"] is False and all("servo" not in r for r in open_loop["records"])
+    doc = needle.run(2, 0, workers=2, progress=False, store=store, servo=True)
+    assert doc["servo"] is True and [r.get("servo") for r in doc["records"]] == [True, True]
+    kept = needle.run(2, 0, workers=1, progress=False, store=store, servo=True)
+    assert [r["seconds"] for r in kept["records"]] == [r["seconds"] for r in doc["records"]]
+    again = needle.run(2, 0, workers=1, progress=False, store=store)
+    assert all("servo" not in r for r in again["records"])
+    needle.main(tmp_path, trials=1, seed=0, workers=1, servo=True)
+    assert "the drive servoed" in capsys.readouterr().err

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from typing import Any
 
 import cv2
@@ -482,7 +483,12 @@ class NeedleProcedure(CellActions):
                 self._move(arm, T, f"drive pose {k + 1} of {n}")
             return {}
         goals = drive.G_PS @ drive.G_SN                  # the needle's planned poses
-        servo = HeldNeedleServo(goals[0], self.needle.tip, s.drive_servo)
+        # the tracker's sigmas in the tissue, under the jaws, are those any step moves
+        # on (max_sigma_*): tighter bounds would stop most drives at their first poses
+        servo = HeldNeedleServo(goals[0], self.needle.tip, replace(
+            s.drive_servo, max_sigma_position=max(s.drive_servo.max_sigma_position,
+                                                  s.max_sigma_position),
+            max_sigma_angle=max(s.drive_servo.max_sigma_angle, s.max_sigma_angle)))
         # the tip is in the tissue from the first poses on: the tracker must not take the
         # part under the surface for missing wire
         self.tracker.set_occluder(TissuePlane(self.incision.mean(axis=0), self.normal))
