@@ -52,23 +52,23 @@ class ProcedureSettings:
     edge-on needle leaves its tilt uncertain). Regrasp: the grasp point stays
     ``regrasp_exit_margin`` (arc) above the exit and ``regrasp_tip_margin`` from the tip.
     Tracking: ``particles``, ``updates`` per look, ``init_updates`` after the global
-    initialisation, ``depth_window`` (the initialisation searches the incision's depth
-    plus or minus this), ``incision_mask_px`` (the incision line's width masked out of
-    the features: a dark line is not the needle); ``max_sigma_position`` and
-    ``max_sigma_angle``, the pose uncertainty a step may still move on (the jaws take a
-    wire within about 1 mm of where they aim). ``grasp_margin``: the driving grasp is
-    chosen this much (arc) further from the swage than the drive needs, and the pick-up
-    grasp this much further from it than ``separation``, so that the grasps the arms
-    actually make still pass. ``reach_margin`` (rad): plans keep the arms' wrist joints
-    this far inside their limits, so that a grasp made a degree or two off its plan, and
-    a path between planned poses, stay in reach (the moves and the checks of the grasp
-    actually made use the limits themselves). ``placement_tolerance``: how far the tracked needle's
-    entry and exit (its arc's crossings of the tissue surface) may lie from the plan's
-    (ND fails otherwise), and in the truth check the true ones. ``drive_servo``: the
-    drive corrected from the needle tracked during it (:mod:`~oralnav.control.needle.servo`,
-    its settings; ``None``, the default, drives open-loop), looking after every
-    ``servo_every`` drive poses and at the last until the servo says done, at most
-    ``servo_final`` corrections there.
+    initialisation, ``init_attempts`` global initialisations before the first look gives up
+    (each on fresh frames and particles), ``depth_window`` (the initialisation searches the
+    incision's depth plus or minus this), ``incision_mask_px`` (the incision line's width
+    masked out of the features: a dark line is not the needle); ``max_sigma_position`` and
+    ``max_sigma_angle``, the pose uncertainty a step may still move on (the jaws take a wire
+    within about 1 mm of where they aim). ``grasp_margin``: the driving grasp is chosen this
+    much (arc) further from the swage than the drive needs, and the pick-up grasp this much
+    further from it than ``separation``, so that the grasps the arms actually make still
+    pass. ``reach_margin`` (rad): plans keep the arms' wrist joints this far inside their
+    limits, so that a grasp made a degree or two off its plan, and a path between planned
+    poses, stay in reach (the moves and the checks of the grasp actually made use the limits
+    themselves). ``placement_tolerance``: how far the tracked needle's entry and exit (its
+    arc's crossings of the tissue surface) may lie from the plan's (ND fails otherwise), and
+    in the truth check the true ones. ``drive_servo``: the drive corrected from the needle
+    tracked during it (:mod:`~oralnav.control.needle.servo`, its settings; ``None``, the
+    default, drives open-loop), looking after every ``servo_every`` drive poses and at the
+    last until the servo says done, at most ``servo_final`` corrections there.
     """
 
     depth: float = 0.005
@@ -111,6 +111,7 @@ class ProcedureSettings:
     particles: int = 3000
     updates: int = 3
     init_updates: int = 3
+    init_attempts: int = 2
     depth_window: float = 0.04
     incision_mask_px: int = 16
     placement_tolerance: float = 0.002
@@ -157,6 +158,9 @@ class ProcedureSettings:
         if not 0.0 <= self.suture_at <= 1.0:
             raise NeedleError(f"needle procedure: suture_at must be in [0, 1], got "
                               f"{self.suture_at}")
+        if self.init_attempts < 1:
+            raise NeedleError(f"needle procedure: init_attempts must be >= 1, got "
+                              f"{self.init_attempts}")
         if self.servo_every < 1 or self.servo_final < 0:
             raise NeedleError(f"needle procedure: servo_every must be >= 1 and servo_final "
                               f">= 0, got {self.servo_every}, {self.servo_final}")
