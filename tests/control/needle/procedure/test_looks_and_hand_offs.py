@@ -350,3 +350,30 @@ def test_the_hand_off_is_planned_with_the_drivers_path_to_it():
     k = next(i for i, T in enumerate(path)
              if np.allclose(T, back_off(T_B, proc.s.approach)))
     assert 0 < k < len(path) - 1
+
+
+@pytest.mark.parametrize("attempts", [1, 2])
+def test_an_unconverged_global_initialisation_is_started_again(attempts):
+    """Issue 36 (generalising): the pick-up's first look, a global initialisation of the
+    particle filter, finds the needle's basin with some chance; one that ends unconverged
+    (here made so) is started again on fresh frames and particles, up to
+    ``init_attempts`` in all, and the look gives the first converged track; with one
+    attempt the look stays unconverged."""
+    cell, proc = _procedure(2, settings=replace(ProcedureSettings(), init_attempts=attempts))
+    starts, update = [], proc.tracker.update
+    initialize = proc.tracker.initialize
+
+    def counted(*a, **k):
+        starts.append(1)
+        return initialize(*a, **k)
+
+    def first_lost(*a, **k):
+        tr = update(*a, **k)
+        return replace(tr, converged=False, reason="test") if len(starts) == 1 else tr
+    proc.tracker.initialize, proc.tracker.update = counted, first_lost
+    tr = proc._look(init=True, static=False)
+    assert len(starts) == attempts
+    assert tr.converged == (attempts == 2)
+    if tr.converged:
+        T = cell.truth().T_ref_needle
+        assert np.linalg.norm(tr.pose[:3, 3] - T[:3, 3]) < 0.5e-3
