@@ -39,10 +39,15 @@ def rotation_log(R: np.ndarray) -> np.ndarray:
     return w * (angle / (2.0 * math.sin(angle)))
 
 
+def _skew(v: np.ndarray) -> np.ndarray:
+    """The cross-product matrix of the 3-vector ``v``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
 def rotation_exp(v: np.ndarray) -> np.ndarray:
     """3x3 rotation of the rotation vector ``v`` (rad)."""
     angle = math.sqrt(float(v @ v))
-    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    K = _skew(v)
     if angle < _SMALL:
         return np.eye(3) + K + 0.5 * (K @ K)
     return (np.eye(3) + (math.sin(angle) / angle) * K
@@ -59,11 +64,10 @@ def geodesic(R0: np.ndarray, R1: np.ndarray, f: np.ndarray) -> np.ndarray:
     v = rotation_log(R0.T @ R1)
     angle = math.sqrt(float(v @ v))
     if angle < _SMALL:
-        K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+        K = _skew(v)
         E = np.eye(3) + f[:, None, None] * K + (0.5 * f * f)[:, None, None] * (K @ K)
     else:
-        u = v / angle
-        K = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
+        K = _skew(v / angle)
         a = f * angle
         E = (np.eye(3) + np.sin(a)[:, None, None] * K
              + (1.0 - np.cos(a))[:, None, None] * (K @ K))

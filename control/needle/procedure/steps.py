@@ -495,7 +495,6 @@ class NeedleProcedure(CellActions):
         D = np.eye(4)                   # the correction every reported pose carries
         at_frame = self.cell.gripper_pose(arm)   # the reported tool at the last look
         errors: list[float] = []
-        lags: list[float] = []
 
         def go(T: np.ndarray, what: str) -> None:
             ok, why = self._reach(arm, [T], 0.0)
@@ -519,7 +518,6 @@ class NeedleProcedure(CellActions):
                 except ServoStop as exc:
                     raise StepFailed(f"servo_{exc.cause}",
                                      f"drive pose {k + 1} of {n}: {exc.detail}") from None
-                lags.append(time.monotonic() - stamp)
                 at_frame = now
                 errors.append(cmd.shift)
                 if cmd.done:

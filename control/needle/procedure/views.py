@@ -99,12 +99,10 @@ class ViewRule:
         open_ = facing >= math.cos(max_angle)       # not refused yet
         for k in np.nonzero(~open_)[0]:
             why[k] = "edge-on to the camera"
-        # the grippers' parts: jaws (tip to heel) and shaft (heel on), per pose and tool
-        tip, z = tl[..., :3, 3], tl[..., :3, 2]                           # (N, m, 3)
-        heel = tip - s.jaw_length * z
+        # the grippers' parts, per pose and tool: jaws, then shaft
         m_parts = 2 * tl.shape[1]
-        pa = np.stack([tip, heel], axis=2).reshape(N, m_parts, 3)
-        pb = np.stack([heel, tip - s.tool_length * z], axis=2).reshape(N, m_parts, 3)
+        ends_a, ends_b = self._part_ends(tl)                              # (N, m, 2, 3)
+        pa, pb = ends_a.reshape(N, m_parts, 3), ends_b.reshape(N, m_parts, 3)
         radius = np.tile([s.jaw_radius, s.tool_radius], tl.shape[1])
         m = s.view_margin_px
 
@@ -178,11 +176,18 @@ class ViewRule:
         """The gripper at ``T_ref_T`` as the parts that may hide the needle: its jaws (a
         cylinder of ``jaw_radius`` over ``jaw_length`` behind the tip) and its shaft
         (``tool_radius``, on to ``tool_length`` behind the tip)."""
+        a, b = self._part_ends(T_ref_T)
+        return (ToolCylinder(a[0], b[0], self.s.jaw_radius),
+                ToolCylinder(a[1], b[1], self.s.tool_radius))
+
+    def _part_ends(self, T_ref_T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The ends of the jaws' and the shaft's cylinders (:meth:`tool_parts`) of the
+        grippers at ``T_ref_T`` (..., 4, 4): ``a``, ``b`` (..., 2, 3), jaws first."""
         s = self.s
-        tip, z = T_ref_T[:3, 3], T_ref_T[:3, 2]
+        tip, z = T_ref_T[..., :3, 3], T_ref_T[..., :3, 2]
         heel = tip - s.jaw_length * z
-        return (ToolCylinder(tip, heel, s.jaw_radius),
-                ToolCylinder(heel, tip - s.tool_length * z, s.tool_radius))
+        return (np.stack([tip, heel], axis=-2),
+                np.stack([heel, tip - s.tool_length * z], axis=-2))
 
     def backdrop(self, cam: CameraModel, pts: np.ndarray) -> np.ndarray:
         """Which of ``pts`` (k, 3, ref) ``cam`` sees against the tissue: the ray through
