@@ -405,14 +405,16 @@ async def test_close_during_a_read_ends_it(fakes):
 # -- device timestamps mapped onto the monotonic clock (issue 32) ---------------------------
 
 @pytest.mark.skipif(GI_MISSING is not None, reason=str(GI_MISSING))
-@pytest.mark.alone  # a 3 ms spread bound: 5.4 ms beside the parallel suite on a slow day
+@pytest.mark.alone  # the shortest transfer delay in 30 frames stays under 15 ms when alone
 async def test_device_timestamps_are_mapped_onto_the_monotonic_clock():
     """Issue 32 (time): with timestamps="device" the frames of a camera whose clock is
     4321 s ahead of this machine's, and whose frames leave 20 ms after capture, are
-    stamped at capture + 20 ms + the shortest transfer delay (under 15 ms here), the same
-    constant for every frame once the shortest delay has been seen (spread < 3 ms); with
-    the camera's clock jumping 5 s ahead mid-stream, read() raises ClockError naming the
-    jump, and the next frames are mapped afresh."""
+    stamped at capture + 20 ms + the shortest transfer delay seen so far (under 15 ms
+    here): a frame that travels slower than an earlier one does not move the stamp, so the
+    lag never rises by more than the map's drift allowance (100 ppm of the time between
+    arrivals) and only falls when a faster frame arrives; with the camera's clock jumping
+    5 s ahead mid-stream, read() raises ClockError naming the jump, and the next frames
+    are mapped afresh."""
     from oralnav.drivers.errors import ClockError
     from tests.sim.peers.test_gige_render import RandomFrames, driver, rendered
 
@@ -423,8 +425,17 @@ async def test_device_timestamps_are_mapped_onto_the_monotonic_clock():
             frames = [await cam.read() for _ in range(30)]
             lags = [f.timestamp - source.find(f.device_timestamp - offset)[0]
                     for f in frames]
-            assert 0.02 <= min(lags) and max(lags) < 0.02 + 0.015, lags
-            assert max(lags[10:]) - min(lags[10:]) < 0.003, lags
+            assert 0.02 <= min(lags) and lags[-1] < 0.02 + 0.015, lags
+            # Which frame travels fastest depends on the machine's load (CI once saw the
+            # first ten at 4.6 ms and a later one at 0.7 ms), so the test checks the rule,
+            # not when the fastest frame came: each lag is the previous one, raised by at
+            # most the drift allowance, or lower.
+            # The allowance grows with the time between arrivals, which the test cannot
+            # see: a frame held up to 1 s adds 100 us, still far below the millisecond
+            # spread of transfer delays that the map must not pass on.
+            for i in range(1, len(frames)):
+                allowance = 1e-4 * (frames[i].timestamp - frames[i - 1].timestamp + 1.0)
+                assert lags[i] <= lags[i - 1] + allowance, (i, lags)
             camera.clock_offset_s = offset + 5.0  # the camera's clock set forward
             with pytest.raises(ClockError, match=r"jumped by \+(4|5)\d\d\d\.\d ms"):
                 for _ in range(10):
