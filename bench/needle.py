@@ -31,7 +31,9 @@ trial.
 
 ``--arm-error MM DEG`` gives each arm a kinematic error of that size (the tool is ``MM``
 and ``DEG`` away from where the arm reports it: ``needle_trials.arm_errors``), drawn per
-trial apart from the layout, so the same seeds show what the error costs. Off by default.
+trial apart from the layout, so the same seeds show what the error costs; the procedure
+is told the error's size as the arms' stated accuracy (``ProcedureSettings.arm_accuracy``,
+which widens the tracker's motion prior), never the errors themselves. Off by default.
 """
 
 from __future__ import annotations
@@ -166,7 +168,9 @@ def run_trial(seed: int, arm_error: tuple[float, float] | None = None,
              else (arm_error[0] * 1e-3, math.radians(arm_error[1])))
     cell, info = trial_cell(seed, rig=trial_rig(), drivable=port_drives(CT1),
                             workable=port_pair(CT1), arm_error=error)
-    settings = ProcedureSettings(drive_servo=ServoSettings() if servo else None)
+    # the procedure is told the arms' accuracy (a maker's figure), never their errors
+    settings = ProcedureSettings(drive_servo=ServoSettings() if servo else None,
+                                 arm_accuracy=error)
     proc = NeedleProcedure(cell, info.incision, info.surface_normal, settings,
                            surface_outline=info.surface_outline, truth_check=check_truth)
     results = proc.run_all()

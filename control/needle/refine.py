@@ -329,7 +329,9 @@ class Refined:
     needle centre's position and of its orientation from the pose covariance (largest
     axis); ``sigma_slide`` (rad): that of the turn about the needle's own axis (the slide
     along the arc, which only the ends measure), ``sigma_slide_seen`` the same from these
-    images alone (without the prior); ``ok``: ``rms_px`` and ``support`` within
+    images alone (without the prior); ``sigma_tilt`` (rad): that of the needle's plane
+    (the turns about the axes in it, largest; the circle's orientation without the
+    slide); ``ok``: ``rms_px`` and ``support`` within
     the settings' bounds; ``cov``: the pose covariance (6x6, :func:`_perturb`'s local
     parameters, prior included; ``None`` when the normal equations are singular);
     ``prior_distance2``: the squared Mahalanobis distance of the pose from the prior
@@ -346,6 +348,7 @@ class Refined:
     sigma_slide_seen: float = math.inf
     cov: np.ndarray | None = None
     prior_distance2: float = 0.0
+    sigma_tilt: float = math.inf
 
 
 @dataclass(frozen=True, eq=False)
@@ -805,7 +808,7 @@ class PoseRefiner:
                     damp[held, held] = 0.0
                 step = np.linalg.solve(Hs + damp, -gs)
                 T = _perturb(T, step)
-        sig_a = sig_p = sig_s = sig_seen = math.inf
+        sig_a = sig_p = sig_s = sig_seen = sig_t = math.inf
         cov = None
         d2, Jp = 0.0, None
         if prior is not None:
@@ -827,10 +830,11 @@ class PoseRefiner:
                 sig_a = math.sqrt(max(float(np.linalg.eigvalsh(cov[:3, :3]).max()), 0.0))
                 sig_p = math.sqrt(max(float(np.linalg.eigvalsh(cov[3:, 3:]).max()), 0.0))
                 sig_s = math.sqrt(max(float(cov[2, 2]), 0.0))
+                sig_t = math.sqrt(max(float(np.linalg.eigvalsh(cov[:2, :2]).max()), 0.0))
             except np.linalg.LinAlgError:
                 cov = None
         ok = bool(rms <= s.max_rms_px and support >= s.min_support)
-        return Refined(T, rms, support, sig_p, sig_a, ok, sig_s, sig_seen, cov, d2)
+        return Refined(T, rms, support, sig_p, sig_a, ok, sig_s, sig_seen, cov, d2, sig_t)
 
     def _linearise(self, T: np.ndarray,
                    meas: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]

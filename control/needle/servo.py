@@ -47,7 +47,7 @@ from scipy.spatial.transform import Rotation
 from oralnav.control.errors import GeometryError, NeedleError
 from oralnav.control.geometry import as_transform, rotation_angle
 
-__all__ = ["HeldNeedleServo", "Seen", "ServoCommand", "ServoSettings", "ServoStop"]
+__all__ = ["DriveServo", "HeldNeedleServo", "Seen", "ServoCommand", "ServoSettings", "ServoStop"]
 
 
 @dataclass(frozen=True)
@@ -101,14 +101,18 @@ class Seen:
     sigma_angle: float = 0.0
 
     @classmethod
-    def from_track(cls, track, stamp: float) -> Seen:
+    def from_track(cls, track, stamp: float, held: bool = False) -> Seen:
         """From a :class:`~oralnav.control.needle.tracker.NeedleTrack` and its frame's
-        capture time (s); a track without a refinement has no sigmas (infinite)."""
+        capture time (s); a track without a refinement has no sigmas (infinite).
+        ``held``: the needle is in closed jaws, which fix its slide along its own circle:
+        the track is judged as the tracker judges a held needle (``held_reason``), and
+        ``sigma_angle`` is that of the needle's plane (``Refined.sigma_tilt``), for
+        :class:`DriveServo`, which servoes the circle alone."""
         r = track.refined
-        return cls(np.asarray(track.pose, dtype=float), float(stamp), bool(track.converged),
-                   track.reason,
-                   math.inf if r is None else float(r.sigma_position),
-                   math.inf if r is None else float(r.sigma_angle))
+        reason = track.held_reason if held else track.reason
+        angle = math.inf if r is None else float(r.sigma_tilt if held else r.sigma_angle)
+        return cls(np.asarray(track.pose, dtype=float), float(stamp), not reason, reason,
+                   math.inf if r is None else float(r.sigma_position), angle)
 
 
 class ServoStop(NeedleError):
@@ -235,3 +239,156 @@ class HeldNeedleServo:
         self._last_delta = delta
         return ServoCommand(delta, shift, turn, done=False)
 
+
+
+def _plane_turn(seen: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """The shortest rotation vector (rad, reference frame) that turns the needle plane's
+    normal (N's z) of rotation ``seen`` onto that of ``goal`` (3x3 each): the circle's
+    orientation error, without the slide along it."""
+    a, b = seen[:, 2], goal[:, 2]
+    axis = np.cross(a, b)
+    sin = float(np.linalg.norm(axis))
+    return np.zeros(3) if sin < 1e-12 else axis * (math.atan2(sin, float(a @ b)) / sin)
+
+
+class DriveServo:
+    """Servo a held needle's circle along a drive: the needle's planned poses ``goals``
+    (n, 4, 4; ``T_ref_N``, m), each the first turned about the needle's own axis through
+    its centre, which the plan holds still.
+
+    Why the circle alone: once the tip is under the tissue and the swage in the jaws, the
+    views cannot see the needle slide along itself, which the jaws fix anyway; where the
+    bite enters and leaves depends on the circle (centre and plane) alone. The tracked
+    centre is good to about 0.1 mm while enough of the arc shows.
+
+    Why a model, not only a gain on the last error: the arm's kinematic error ``E`` and
+    the error it left in the seen grasp make the true centre wander as the tool turns:
+    seen at drive pose ``k``, the centre is off the plan by ``m_k = d_k - e + A_k x``
+    (first order in ``E``): ``d_k`` the translation the servo has added at pose ``k``,
+    ``e`` the arm's error at the centre (reference frame), ``A_k`` pose ``k``'s planned
+    rotation and ``x`` the grasp's error (needle frame, m). Each usable look adds three
+    equations; ``e`` and ``x`` are the least-squares solution with a zero-mean prior of
+    ``prior_shift`` (m, one sigma) on each, weighed against the look's own
+    ``sigma_position``, so one look only shifts the circle and the rotation-dependent part
+    is learnt as the turn grows. :meth:`correction` then predicts, for every later pose,
+    the translation that puts the centre on the plan, which carries the drive on where the
+    views lose the centre (half the arc under the tissue, the rest near the jaws).
+
+    Guards (each a :class:`ServoStop`): ``not_finite``; ``uncertain``: the centre's or
+    the plane's sigma over the settings' bounds (the caller may carry on on the model's
+    prediction, :attr:`span`, or stop); ``lost``: the tracker not converged for another
+    reason (off the wire, a poor fit, base and tip in doubt): stop; ``stale``; ``jump``:
+    the centre or the plane off where the last usable look, moved as the tool moved since,
+    puts it (a slip in the jaws, a twin): stop. Units: metres, radians, seconds.
+    """
+
+    def __init__(self, goals: np.ndarray, settings: ServoSettings | None = None,
+                 prior_shift: float = 0.003) -> None:
+        goals = np.asarray(goals, dtype=float)
+        if goals.ndim != 3 or goals.shape[1:] != (4, 4) or len(goals) < 1:
+            raise NeedleError(f"drive servo: the goals must be (n, 4, 4) poses, got "
+                              f"{goals.shape}")
+        self.goals = np.stack([_transform(g, f"drive goal {k + 1}")
+                               for k, g in enumerate(goals)])
+        if not (math.isfinite(prior_shift) and prior_shift > 0):
+            raise NeedleError(f"drive servo: prior_shift must be finite and > 0 m, got "
+                              f"{prior_shift}")
+        self.s = settings or ServoSettings()
+        self.prior_shift = float(prior_shift)
+        self._rows: list[np.ndarray] = []
+        self._rhs: list[np.ndarray] = []
+        self._weights: list[float] = []
+        self._angles: list[float] = []
+        self._theta = np.zeros(6)          # (e, x)
+        self._last: Seen | None = None
+
+    @property
+    def looks(self) -> int:
+        """How many looks the model has."""
+        return len(self._weights)
+
+    @property
+    def span(self) -> float:
+        """The drive's turn (rad) between the model's first and last look: how much of
+        the rotation-dependent error it has seen."""
+        return max(self._angles) - min(self._angles) if self._angles else 0.0
+
+    def _angle(self, k: int) -> float:
+        """How far (rad) goal ``k`` is turned from the first about the needle's axis."""
+        R = self.goals[0][:3, :3].T @ self.goals[k][:3, :3]
+        return abs(math.atan2(R[1, 0], R[0, 0]))
+
+    def correction(self, k: int) -> np.ndarray:
+        """The translation (4x4, reference frame) that puts the centre on the plan at
+        drive pose ``k``, as the model predicts (the identity before any look)."""
+        e, x = self._theta[:3], self._theta[3:]
+        D = np.eye(4)
+        D[:3, 3] = e - self.goals[k][:3, :3] @ x
+        return D
+
+    def predicted(self, k: int, applied: np.ndarray) -> np.ndarray:
+        """Where the model puts the needle (``T_ref_N``, 4x4) at drive pose ``k`` with the
+        arm sent ``applied`` (4x4, reference frame) times the planned pose there: the
+        goal, its centre moved by ``d_k - e + A_k x``. Its change between two looks is the
+        needle's motion as the arm truly makes it, the tracker's prior (the reported
+        motion would carry the corrections, which the model says cancel the wander)."""
+        goal = self.goals[k]
+        c = goal[:3, 3]
+        d = applied[:3, :3] @ c + applied[:3, 3] - c
+        T = goal.copy()
+        T[:3, 3] = c + d - self._theta[:3] + goal[:3, :3] @ self._theta[3:]
+        return T
+
+    def check(self, seen: Seen, now: float, tool_motion: np.ndarray) -> None:
+        """The guards on ``seen`` at time ``now`` (s), the reported tool having moved by
+        ``tool_motion`` (4x4, reference frame, left factor) since the last usable look;
+        a :class:`ServoStop` when one trips."""
+        s = self.s
+        _transform(seen.pose, "the tracked pose")
+        if not math.isfinite(seen.stamp):
+            raise ServoStop("not_finite", f"the frame's stamp is {seen.stamp}")
+        if seen.sigma_position > s.max_sigma_position or seen.sigma_angle > s.max_sigma_angle:
+            raise ServoStop("uncertain", f"the circle is uncertain ({seen.sigma_position * 1e3:.2f}"
+                                         f" mm, plane {math.degrees(seen.sigma_angle):.2f} deg;"
+                                         f" bounds {s.max_sigma_position * 1e3:.2f} mm, "
+                                         f"{math.degrees(s.max_sigma_angle):.2f} deg)")
+        if not seen.converged:
+            raise ServoStop("lost", f"the tracker has not converged ({seen.reason})")
+        age = now - seen.stamp
+        if age > s.max_age:
+            raise ServoStop("stale", f"the frame is {age * 1e3:.0f} ms old (bound "
+                                     f"{s.max_age * 1e3:.0f} ms)")
+        if self._last is not None:
+            predicted = _transform(tool_motion, "the tool's motion") @ self._last.pose
+            off = float(np.linalg.norm(seen.pose[:3, 3] - predicted[:3, 3]))
+            turn = float(np.linalg.norm(_plane_turn(seen.pose[:3, :3], predicted[:3, :3])))
+            if off > s.max_jump_shift or turn > s.max_jump_turn:
+                raise ServoStop("jump", f"the needle's circle is seen {off * 1e3:.2f} mm and "
+                                        f"{math.degrees(turn):.1f} deg from where the tool's "
+                                        f"motion puts it (bounds {s.max_jump_shift * 1e3:.1f} "
+                                        f"mm, {math.degrees(s.max_jump_turn):.0f} deg)")
+
+    def update(self, k: int, seen: Seen, now: float, tool_motion: np.ndarray,
+               applied: np.ndarray) -> float:
+        """Take the look ``seen`` at drive pose ``k`` (after :meth:`check`'s guards, which
+        raise), the arm having been sent ``applied`` (4x4, reference frame) times the
+        planned pose there; refit the model. Returns how far (m) the centre was seen from
+        the plan."""
+        self.check(seen, now, tool_motion)
+        goal = self.goals[k]
+        m = seen.pose[:3, 3] - goal[:3, 3]
+        d = applied[:3, :3] @ goal[:3, 3] + applied[:3, 3] - goal[:3, 3]
+        # m - d = -e + A_k x
+        self._rows.append(np.hstack([-np.eye(3), goal[:3, :3]]))
+        self._rhs.append(m - d)
+        self._weights.append(1.0 / max(seen.sigma_position, 1e-5))
+        self._angles.append(self._angle(k))
+        self._last = seen
+        W = np.repeat(self._weights, 3)
+        A = np.vstack(self._rows) * W[:, None]
+        b = np.concatenate(self._rhs) * W
+        # the prior: each unknown zero, one sigma prior_shift
+        A = np.vstack([A, np.eye(6) / self.prior_shift])
+        b = np.concatenate([b, np.zeros(6)])
+        self._theta = np.linalg.lstsq(A, b, rcond=None)[0]
+        return float(np.linalg.norm(m))

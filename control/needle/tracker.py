@@ -548,7 +548,12 @@ class TrackSettings:
     ``position_drift`` (m) per update (the jaws' hold, the tissue's give and the arm's
     kinematic error between two poses). The last update's covariance, so widened, is
     the next update's prior (:class:`.needle_refine.PosePrior`): it holds what the
-    jaws or the tissue hide and what a short baseline barely measures. Where the images
+    jaws or the tissue hide and what a short baseline barely measures. An arm whose
+    kinematics are off moves the needle other than it reports, more the more it moves:
+    ``turn_drift`` (m per rad the motion turns: the arm's error at the needle swung
+    round) and ``travel_drift`` (m per m the needle's centre travels: the arm's rotation
+    error) widen the position by the motion's size (0 for exact kinematics, the
+    default). Where the images
     alone put the needle more than ``prior_gate`` (squared Mahalanobis distance, their
     covariance and the prior's summed) from it, the motion was not what was assumed (a
     slip): the prior is dropped and the images alone decide. A motion under test (the
@@ -566,11 +571,17 @@ class TrackSettings:
     tilt_drift: float = math.radians(0.5)
     position_drift: float = 0.0001
     prior_gate: float = 16.0
+    turn_drift: float = 0.0
+    travel_drift: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.swage_contest >= 1.0:
             raise NeedleError(f"swage_contest must be >= 1 (a ratio of two twins' thread "
                               f"evidence), got {self.swage_contest}")
+        for name in ("turn_drift", "travel_drift"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise NeedleError(f"{name} must be finite and >= 0, got {v}")
 
 
 @dataclass(frozen=True)
@@ -582,6 +593,10 @@ class NeedleTrack:
     (``None`` when it was not run); ``swage``: the base/tip evidence
     (:func:`.needle_refine.swage_evidence` at ``pose``, positive: base as reported);
     ``converged``: only then may a step move on ``pose``; ``reason``: why not, when not.
+    ``held_reason``: the same judgement for a needle whose slide along its own circle the
+    closed jaws fix (the plane's orientation, ``Refined.sigma_tilt``, judged in place of
+    the largest axis): empty when a step that takes the slide from the grip may move on
+    the circle (centre and plane) of ``pose``.
     """
 
     pose: np.ndarray
@@ -590,6 +605,7 @@ class NeedleTrack:
     swage: float
     converged: bool
     reason: str
+    held_reason: str = ""
 
 
 class NeedleTracker:
@@ -729,8 +745,14 @@ class NeedleTracker:
         # (the jaws hide one) would otherwise let it grow by one drift per look until
         # the track counts as lost while the pose is as good as before
         slide = s.slide_drift if not trusted or not still else 0.0
-        drift = np.array([s.tilt_drift, s.tilt_drift, slide] + 3 * [s.position_drift])
         T_b, cov = self._belief
+        position = s.position_drift
+        if s.turn_drift or s.travel_drift:
+            D = np.asarray(delta, dtype=float)
+            turn = rotation_angle(D[:3, :3])
+            travel = float(np.linalg.norm(D[:3, :3] @ T_b[:3, 3] + D[:3, 3] - T_b[:3, 3]))
+            position = math.hypot(position, s.turn_drift * turn, s.travel_drift * travel)
+        drift = np.array([s.tilt_drift, s.tilt_drift, slide] + 3 * [position])
         self._belief = (np.asarray(delta, dtype=float) @ T_b, cov + np.diag(drift ** 2))
 
     def update(self, features: Sequence[NeedleFeatures]) -> NeedleTrack:
@@ -818,22 +840,28 @@ class NeedleTracker:
         # the new jaws hid the swage, after +26 DN at the swage; the next update then
         # took the twin)
         doubted = carried and swage <= -max(s.swage_min, self._side_evidence)
-        reason = ""
-        if est.score < s.min_score:
-            reason = f"the filter's estimate is not on the wire (score {est.score:.2f})"
-        elif not ref.ok:
-            reason = (f"the refined fit is poor (RMS {ref.rms_px:.2f} px, "
-                      f"{100 * ref.support:.0f} % of the arc found)")
-        elif ref.sigma_position > s.max_sigma_position or ref.sigma_angle > s.max_sigma_angle:
-            reason = (f"the views leave the pose uncertain ({1e3 * ref.sigma_position:.2f} mm, "
-                      f"{math.degrees(ref.sigma_angle):.1f} deg)")
-        elif s.require_swage and doubted:
-            reason = (f"the thread is at the end the track took for the tip (evidence "
-                      f"{swage:.1f} DN): base and tip are in doubt")
-        elif s.require_swage and swage < s.swage_min and not carried:
-            reason = (f"base and tip are not told apart (thread evidence {swage:.1f} DN, "
-                      f"{s.swage_min:.1f} needed)")
-        track = NeedleTrack(pose, est, ref, swage, not reason, reason)
+        def why_not(angle: float, what: str) -> str:
+            """Why a step may not move on the track, its orientation's sigma ``angle``
+            (rad, ``what`` it measures) judged against the bound; empty when it may."""
+            if est.score < s.min_score:
+                return f"the filter's estimate is not on the wire (score {est.score:.2f})"
+            if not ref.ok:
+                return (f"the refined fit is poor (RMS {ref.rms_px:.2f} px, "
+                        f"{100 * ref.support:.0f} % of the arc found)")
+            if ref.sigma_position > s.max_sigma_position or angle > s.max_sigma_angle:
+                return (f"the views leave the pose uncertain ({1e3 * ref.sigma_position:.2f}"
+                        f" mm, {math.degrees(angle):.1f} deg{what})")
+            if s.require_swage and doubted:
+                return (f"the thread is at the end the track took for the tip (evidence "
+                        f"{swage:.1f} DN): base and tip are in doubt")
+            if s.require_swage and swage < s.swage_min and not carried:
+                return (f"base and tip are not told apart (thread evidence {swage:.1f} DN, "
+                        f"{s.swage_min:.1f} needed)")
+            return ""
+
+        reason = why_not(ref.sigma_angle, "")
+        held_reason = reason and why_not(ref.sigma_tilt, " of the needle's plane")
+        track = NeedleTrack(pose, est, ref, swage, not reason, reason, held_reason)
         if not reason:
             self._side_evidence = max(self._side_evidence, swage) if carried else swage
             self._sided = True

@@ -7,7 +7,6 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import replace
 from typing import Any
 
 import cv2
@@ -42,7 +41,7 @@ from oralnav.control.needle.procedure.poses import _BACK_OFF_TILTS, _path, back_
 from oralnav.control.needle.procedure.results import STEPS, StepFailed, StepResult, _refuse
 from oralnav.control.needle.procedure.settings import ProcedureSettings
 from oralnav.control.needle.procedure.views import ViewRule, _shifted, _turned_and_raised
-from oralnav.control.needle.servo import HeldNeedleServo, Seen, ServoStop
+from oralnav.control.needle.servo import DriveServo, Seen, ServoStop
 from oralnav.control.needle.tracker import (
     FilterSettings,
     NeedleTrack,
@@ -56,6 +55,21 @@ from oralnav.control.vision.camera import CameraModel
 #: ground truth): called with the procedure and the result after every step; it fills
 #: ``truth_ok`` and ``truth_detail`` and may add figures.
 StepCheck = Callable[["NeedleProcedure", StepResult], None]
+
+
+#: How far (m) a gripper works from its arm's RCM, at most: the lever by which the arm's
+#: rotation error moves the needle (the trial cells' ports lie 100-160 mm from the pad).
+ARM_LEVER = 0.16
+
+
+def _drifts(accuracy: tuple[float, float] | None) -> dict[str, float]:
+    """The tracker's motion-size drifts for arms of ``accuracy`` (m, rad): a turn of the
+    gripper swings the arm's error at the needle (its shift and its rotation over the
+    lever) round; a travel is off by the rotation error's share."""
+    if accuracy is None:
+        return {}
+    shift, turn = accuracy
+    return {"turn_drift": shift + turn * ARM_LEVER, "travel_drift": turn}
 
 
 class NeedleProcedure(CellActions):
@@ -110,7 +124,8 @@ class NeedleProcedure(CellActions):
         self.tracker = NeedleTracker(
             self.needle, self.cams, FilterSettings(particles=s.particles, seed=s.seed),
             settings=TrackSettings(max_sigma_position=s.max_sigma_position,
-                                   max_sigma_angle=s.max_sigma_angle))
+                                   max_sigma_angle=s.max_sigma_angle,
+                                   **_drifts(s.arm_accuracy)))
         self.park = {a: cell.gripper_pose(a) for a in self.arms}
         # the incision's depth sets the features' wire width and the search depth
         mid = inc.mean(axis=0)
@@ -440,13 +455,12 @@ class NeedleProcedure(CellActions):
                 drive, choice = self._drive_on(B, tr.pose)
         # else: the gripper may hide the needle here; the grasp seen before the approach
         # moved rigidly with the jaws, so the drive keeps it
-        T_app = self.cell.gripper_pose(B)
-        servoed = self._drive_along(B, drive)
+        servoed, T_looked = self._drive_along(B, drive, self.cell.gripper_pose(B))
         self.in_tissue = True
         # from here the tissue hides the needle's middle: the tracker must not take it
         # for missing wire
         self.tracker.set_occluder(TissuePlane(self.incision.mean(axis=0), self.normal))
-        tr = self._look(self.cell.gripper_pose(B) @ invert(T_app))
+        tr = self._look(self.cell.gripper_pose(B) @ invert(T_looked))
         tip_plan = drive.G_PS @ drive.G_SN[-1]
         tip_plan = tip_plan[:3, :3] @ self.needle.tip + tip_plan[:3, 3]
         tip_seen = tr.pose[:3, :3] @ self.needle.tip + tr.pose[:3, 3]
@@ -466,35 +480,44 @@ class NeedleProcedure(CellActions):
                 "seen_in_the_jaws": ("not converged" if not tr.converged
                                      else "as planned" if seen is None else str(seen))}
 
-    def _drive_along(self, arm: str, drive: Drive) -> dict[str, Any]:
-        """Move ``arm`` along the drive's gripper poses ``G_PT``. Open-loop (no
-        ``drive_servo``): as planned. Servoed: the arm's reported poses are wrong by its
-        kinematic error, and the arc a rotation of the reported tool sweeps a displaced
-        arc; so every ``servo_every`` poses, and at the last until it is reached, the
-        needle is tracked where it is and :class:`HeldNeedleServo` turns the error of its
-        tip from the planned needle pose there (``G_PS G_SN``) into a correction that
-        every later pose carries too. A servo guard (a lost or uncertain track, a jump, no
-        progress) or a corrected pose out of reach stops the drive where it is, naming
-        the cause. Returns the servo's figures (none open-loop)."""
+    def _drive_along(self, arm: str, drive: Drive, approach: np.ndarray
+                     ) -> tuple[dict[str, Any], np.ndarray]:
+        """Move ``arm``, at the drive's ``approach`` pose (reported), along the drive's
+        gripper poses ``G_PT``. Open-loop (no ``drive_servo``): as planned. Servoed: the
+        arm's reported poses are wrong by its kinematic error, and the arc a rotation of
+        the reported tool sweeps is displaced and wanders as the tool turns; so at the
+        approach and every ``servo_every`` drive poses, the needle is tracked where it
+        is and :class:`DriveServo` learns from its circle the translation that keeps the
+        centre on the plan, which every later pose carries. At the approach, before the
+        tip touches the tissue, up to ``servo_final`` more looks correct until the
+        centre is within ``done_shift`` (and at the last pose, where the plan leaves it
+        seen). Looks stop where the plan hides more than ``servo_shown`` of the arc in
+        the tissue; a look that leaves the circle uncertain is not used, and the drive
+        carries on on the model's prediction once its looks span ``servo_span`` of the
+        turn, and stops before that. A lost track, a stale frame, a jump, or a corrected
+        pose out of reach stops the drive where it is, naming the cause. Returns the
+        servo's figures (none open-loop) and the arm's reported pose when the tracker
+        last looked (the next look's motion is the arm's since then)."""
         s = self.s
         n = len(drive.G_PT)
         if s.drive_servo is None:
             for k, T in enumerate(drive.G_PT):
                 self._move(arm, T, f"drive pose {k + 1} of {n}")
-            return {}
-        goals = drive.G_PS @ drive.G_SN                  # the needle's planned poses
-        # the tracker's sigmas in the tissue, under the jaws, are those any step moves
-        # on (max_sigma_*): tighter bounds would stop most drives at their first poses
-        servo = HeldNeedleServo(goals[0], self.needle.tip, replace(
-            s.drive_servo, max_sigma_position=max(s.drive_servo.max_sigma_position,
-                                                  s.max_sigma_position),
-            max_sigma_angle=max(s.drive_servo.max_sigma_angle, s.max_sigma_angle)))
+            return {}, approach
+        goals = drive.G_PS @ drive.G_SN
+        # the approach is the first pose the servo steers: the needle there is the
+        # drive's first pose moved as the gripper backs off from it
+        poses = np.concatenate([approach[None], drive.G_PT])
+        servo = DriveServo(np.concatenate([(approach @ invert(drive.G_PT[0]) @ goals[0])[None],
+                                           goals]), s.drive_servo)
         # the tip is in the tissue from the first poses on: the tracker must not take the
         # part under the surface for missing wire
         self.tracker.set_occluder(TissuePlane(self.incision.mean(axis=0), self.normal))
-        D = np.eye(4)                   # the correction every reported pose carries
         at_frame = self.cell.gripper_pose(arm)   # the reported tool at the last look
+        used = None                     # (k, applied correction) of the last look used
+        looked = None                   # ... of the tracker's last look
         errors: list[float] = []
+        blind = 0
 
         def go(T: np.ndarray, what: str) -> None:
             ok, why = self._reach(arm, [T], 0.0)
@@ -503,32 +526,50 @@ class NeedleProcedure(CellActions):
                                                  f"({why})")
             self._move(arm, T, what)
 
-        for k in range(n):
-            go(D @ drive.G_PT[k], f"drive pose {k + 1} of {n}")
-            if (k + 1) % s.servo_every and k < n - 1:
+        def name(k: int) -> str:
+            return "the approach" if k == 0 else f"drive pose {k} of {n}"
+
+        # where the views still see enough of the arc to fix its circle: out of the
+        # tissue, by the plan
+        shown = [1.0 - len(self._arc_under(g)[2]) / 721 for g in servo.goals]
+        for k in range(n + 1):
+            D = servo.correction(k)
+            if k:
+                go(D @ poses[k], name(k))
+            if (k % s.servo_every and k < n) or shown[k] < s.servo_shown:
                 continue
-            servo.goal = goals[k]
-            for attempt in range(1 + (s.servo_final if k == n - 1 else 0)):
+            for attempt in range(1 + (s.servo_final if k in (0, n) else 0)):
                 now = self.cell.gripper_pose(arm)
-                moved = now @ invert(at_frame)
-                tr = self._look(moved)
+                # the needle's motion since the last look: as the servo's model of the
+                # arm's error predicts it, once it has one
+                motion = (now @ invert(at_frame) if looked is None
+                          else servo.predicted(k, D) @ invert(servo.predicted(*looked)))
+                tr = self._look(motion)
+                at_frame, looked = now, (k, D)
                 stamp = time.monotonic()
                 try:
-                    cmd = servo.update(Seen.from_track(tr, stamp), stamp, tool_motion=moved)
+                    errors.append(servo.update(k, Seen.from_track(tr, stamp, held=True),
+                                               stamp, motion if used is None else
+                                               servo.predicted(k, D) @ invert(
+                                                   servo.predicted(*used)), D))
                 except ServoStop as exc:
+                    if exc.cause == "uncertain" and servo.span >= s.servo_span:
+                        blind += 1
+                        break
                     raise StepFailed(f"servo_{exc.cause}",
-                                     f"drive pose {k + 1} of {n}: {exc.detail}") from None
-                at_frame = now
-                errors.append(cmd.shift)
-                if cmd.done:
+                                     f"{name(k)}: {exc.detail}") from None
+                used = (k, D)
+                if errors[-1] <= s.drive_servo.done_shift or k not in (0, n):
                     break
-                D = cmd.delta @ D
-                go(D @ drive.G_PT[k], f"drive pose {k + 1} of {n}, correction {attempt + 1}")
-        return {"servo_looks": len(errors),
-                "servo_first_error_mm": round(errors[0] * 1e3, 3),
-                "servo_max_error_mm": round(max(errors) * 1e3, 3),
-                "servo_last_error_mm": round(errors[-1] * 1e3, 3),
-                "servo_correction_mm": round(float(np.linalg.norm(D[:3, 3])) * 1e3, 3)}
+                D = servo.correction(k)
+                go(D @ poses[k], f"{name(k)}, correction {attempt + 1}")
+        return {"servo_looks": len(errors), "servo_blind_looks": blind,
+                "servo_span_deg": round(math.degrees(servo.span), 1),
+                "servo_first_error_mm": round(errors[0] * 1e3, 3) if errors else None,
+                "servo_max_error_mm": round(max(errors) * 1e3, 3) if errors else None,
+                "servo_last_error_mm": round(errors[-1] * 1e3, 3) if errors else None,
+                "servo_correction_mm": round(float(np.linalg.norm(
+                    servo.correction(n)[:3, 3])) * 1e3, 3)}, at_frame
 
     def _arc_under(self, T_N: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:func:`_arc_under` on this procedure's tissue surface."""

@@ -411,6 +411,36 @@ def test_the_slide_drifts_only_with_a_motion(driven):
     assert tr._belief[1][2, 2] == pytest.approx(slide + 2 * drift)
 
 
+def test_an_inexact_arm_widens_the_position_by_the_motion_s_size(driven):
+    """Issue 36 (the prior of a motion an arm with kinematic errors makes): with
+    ``turn_drift`` and ``travel_drift`` the position's variance grows by the squares of
+    ``turn_drift`` times the motion's turn (rad) and ``travel_drift`` times how far it
+    takes the needle's centre (m), on top of ``position_drift``; a still look adds only
+    ``position_drift``, and the defaults (exact kinematics) add only that whatever the
+    motion."""
+    tr = copy.deepcopy(driven.tracker)
+    tr.s = replace(tr.s, turn_drift=0.002, travel_drift=0.01)
+    T_b, cov = tr._belief
+    turn = transform_from_euler([0.0, 0.0, 0.0], [0.0, 0.0, 30.0])
+    motion = T_b @ turn @ invert(T_b) @ transform_from_euler([0.004, 0.0, 0.0], [0, 0, 0])
+    tr.predict(motion)
+    travel = float(np.linalg.norm(tr._belief[0][:3, 3] - T_b[:3, 3]))
+    assert travel == pytest.approx(0.004)
+    added = np.diag(tr._belief[1] - cov)[3:]
+    want = tr.s.position_drift ** 2 + (0.002 * math.radians(30)) ** 2 + (0.01 * 0.004) ** 2
+    np.testing.assert_allclose(added, want, rtol=1e-9)
+    T_b, cov = tr._belief
+    tr.predict(np.eye(4))
+    np.testing.assert_allclose(np.diag(tr._belief[1] - cov)[3:], tr.s.position_drift ** 2)
+    exact = copy.deepcopy(driven.tracker)
+    T_b, cov = exact._belief
+    exact.predict(motion)
+    np.testing.assert_allclose(np.diag(exact._belief[1] - cov)[3:],
+                               exact.s.position_drift ** 2)
+    with pytest.raises(NeedleError, match="turn_drift"):
+        TrackSettings(turn_drift=-1.0)
+
+
 def test_jaws_that_close_and_hide_the_wire_leave_the_belief_standing(driven):
     """The motion prior after an update that fits nothing: where the jaws just closed
     (an untrusted look, nothing moved) and hide the wire, what was known stands, its
