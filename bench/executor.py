@@ -93,11 +93,19 @@ def _worker_start(owner: int, threads: int) -> None:
     (:func:`kernel_threads`), and it exits once process ``owner`` (the sweep's) is gone.
     A fork server's workers are not the sweep's children, so a sweep killed outright
     (SIGTERM, SIGKILL) would otherwise leave them waiting for work forever."""
-    # read by numba when it is first imported, which no trial has done yet here
-    os.environ["NUMBA_NUM_THREADS"] = str(threads)
     numba = sys.modules.get("numba")
-    if numba is not None:  # imported already (a fork server's preloaded modules)
-        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    if numba is None:
+        # read by numba when it is first imported, which no trial has done yet here
+        os.environ["NUMBA_NUM_THREADS"] = str(threads)
+    else:
+        # imported already (the fork server preloads the main module, and `oralnav`'s
+        # imports numba): its pool's size is fixed, and every compile re-reads the
+        # environment and raises once the threads run if it names another size (a
+        # kernel whose cache a code change made stale stopped every sweep so). The
+        # environment keeps numba's size; the share is the threads a kernel may use.
+        size = numba.config.NUMBA_NUM_THREADS
+        os.environ["NUMBA_NUM_THREADS"] = str(size)
+        numba.set_num_threads(min(threads, size))
     _leave_with(owner)
 
 

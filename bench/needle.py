@@ -140,16 +140,30 @@ def arm_error_checked(arm_error: Sequence[float] | None) -> tuple[float, float] 
     return values[0], values[1]
 
 
+def difficulty_checked(difficulty: float) -> float:
+    """``difficulty`` as a float; ``ValueError`` unless finite and within 0..2
+    (``needle_trials.MAX_DIFFICULTY``), checked before any trial starts."""
+    from oralnav.sim.world.needle_trials import MAX_DIFFICULTY
+
+    d = float(difficulty)
+    if not (math.isfinite(d) and 0.0 <= d <= MAX_DIFFICULTY):
+        raise ValueError(f"needle bench: a difficulty must be within 0..{MAX_DIFFICULTY:g}, "
+                         f"got {difficulty}")
+    return d
+
+
 def _arm_error_json(arm_error: tuple[float, float] | None) -> dict[str, float] | None:
     """``(mm, deg)`` as the records and the summary give it."""
     return None if arm_error is None else {"mm": arm_error[0], "deg": arm_error[1]}
 
 
 def run_trial(seed: int, arm_error: tuple[float, float] | None = None,
-              servo: bool = False) -> dict[str, Any]:
-    """One trial: the procedure on ``trial_cell(seed)``, each arm with a kinematic error of
-    ``arm_error`` (mm, deg) when given, the drive servoed on the tracked needle with
-    ``servo`` (``ProcedureSettings.drive_servo``); its record (JSON-able)."""
+              servo: bool = False, difficulty: float = 1.0) -> dict[str, Any]:
+    """One trial: the procedure on ``trial_cell(seed)`` at ``difficulty`` (0..2,
+    ``needle_trials.MAX_DIFFICULTY``), each arm with a kinematic error of ``arm_error``
+    (mm, deg) when given, the drive servoed on the tracked needle with ``servo``
+    (``ProcedureSettings.drive_servo``); its record (JSON-able; ``difficulty`` in it
+    unless the default)."""
     from oralnav.config.rig import trial_rig
     from oralnav.control.needle.procedure import (
         NeedleProcedure,
@@ -166,8 +180,9 @@ def run_trial(seed: int, arm_error: tuple[float, float] | None = None,
     # own rules (one arm drives and pulls, the other picks up and hands over)
     error = (None if arm_error is None
              else (arm_error[0] * 1e-3, math.radians(arm_error[1])))
-    cell, info = trial_cell(seed, rig=trial_rig(), drivable=port_drives(CT1),
-                            workable=port_pair(CT1), arm_error=error)
+    cell, info = trial_cell(seed, rig=trial_rig(), difficulty=difficulty,
+                            drivable=port_drives(CT1), workable=port_pair(CT1),
+                            arm_error=error)
     # the procedure is told the arms' accuracy (a maker's figure), never their errors
     settings = ProcedureSettings(drive_servo=ServoSettings() if servo else None,
                                  arm_accuracy=error)
@@ -178,6 +193,7 @@ def run_trial(seed: int, arm_error: tuple[float, float] | None = None,
     return {"seed": seed, "steps": steps, "failure": failure,
             **({} if arm_error is None else {"arm_error": _arm_error_json(arm_error)}),
             **({"servo": True} if servo else {}),
+            **({} if difficulty == 1.0 else {"difficulty": float(difficulty)}),
             "seconds": round(time.perf_counter() - t0, 2),
             "results": [r.to_json() for r in results]}
 
@@ -197,7 +213,8 @@ def classify(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def _kept_trials(store: Path | None, seeds: Sequence[int],
                  arm_error: tuple[float, float] | None = None,
-                 servo: bool = False) -> dict[int, dict[str, Any]]:
+                 servo: bool = False, difficulty: float = 1.0
+                 ) -> dict[int, dict[str, Any]]:
     """The records of ``seeds`` already in ``store`` (one ``SEED.json`` each) run with
     ``arm_error``; a file that does not read back (a write cut short), or a record of
     other settings, is left out, so its trial runs again."""
@@ -211,7 +228,8 @@ def _kept_trials(store: Path | None, seeds: Sequence[int],
             continue
         if (isinstance(rec, dict) and rec.get("seed") == s
                 and rec.get("arm_error") == _arm_error_json(arm_error)
-                and rec.get("servo", False) == servo):
+                and rec.get("servo", False) == servo
+                and rec.get("difficulty", 1.0) == difficulty):
             kept[s] = rec
     return kept
 
@@ -219,7 +237,8 @@ def _kept_trials(store: Path | None, seeds: Sequence[int],
 def run(trials: int, seed: int, workers: int | None = None,
         progress: bool = True, scheduler: str | None = None,
         store: Path | None = None,
-        arm_error: tuple[float, float] | None = None, servo: bool = False) -> dict[str, Any]:
+        arm_error: tuple[float, float] | None = None, servo: bool = False,
+        difficulty: float = 1.0) -> dict[str, Any]:
     """The Monte Carlo over ``trials`` seeds from ``seed``; the summary document. The
     trials run on the engine ``scheduler`` names (``bench/executor.py``: by default a
     local process pool of ``workers``; a trial is a pure function of its seed).
@@ -227,7 +246,7 @@ def run(trials: int, seed: int, workers: int | None = None,
     read back from on the next run, so an interrupted Monte Carlo resumes where it
     stopped (the caller keeps it to one commit: a record is the code's as much as the
     seed's). ``arm_error``: each arm's kinematic error (mm, deg), ``servo``: the drive
-    servoed, as :func:`run_trial`'s."""
+    servoed, ``difficulty``: the trials' (0..2), as :func:`run_trial`'s."""
     from oralnav.bench.executor import TrialRunner
     from oralnav.config.loader import atomic_write_text
     from oralnav.control.needle.procedure import step_rates
@@ -236,7 +255,8 @@ def run(trials: int, seed: int, workers: int | None = None,
         raise ValueError(f"needle bench: trials must be >= 1, got {trials}")
     seeds = list(range(seed, seed + trials))
     arm_error = arm_error_checked(arm_error)
-    kept = _kept_trials(store, seeds, arm_error, servo)
+    difficulty = difficulty_checked(difficulty)
+    kept = _kept_trials(store, seeds, arm_error, servo, difficulty)
     todo = [s for s in seeds if s not in kept]
     if scheduler is None:
         workers = max(1, min(workers or os.cpu_count() or 1, max(len(todo), 1)))
@@ -264,8 +284,10 @@ def run(trials: int, seed: int, workers: int | None = None,
             print(f"needle: {len(todo)} trials on {runner.name}"
                   + (f", dashboard {runner.dashboard}" if runner.dashboard else ""),
                   file=sys.stderr, flush=True)
-        trial = (run_trial if arm_error is None and not servo
-                 else functools.partial(run_trial, arm_error=arm_error, servo=servo))
+        options = {**({} if arm_error is None else {"arm_error": arm_error}),
+                   **({"servo": True} if servo else {}),
+                   **({} if difficulty == 1.0 else {"difficulty": difficulty})}
+        trial = functools.partial(run_trial, **options) if options else run_trial
         fresh = runner.map(trial, todo, on_result=report) if todo else []
         engine, workers = runner.name, runner.workers
     ran = dict(zip(todo, fresh, strict=True))
@@ -277,6 +299,7 @@ def run(trials: int, seed: int, workers: int | None = None,
             "overall_interval": list(wilson(succeeded, len(records))),
             "split": seed_split(seeds[0], seeds[-1]),
             "arm_error": _arm_error_json(arm_error), "servo": servo,
+            "difficulty": difficulty,
             "steps": rates["steps"], "individual": rates["individual"],
             "failures": classify(records), "failure_causes": dict(causes),
             "paper": PAPER, "target_overall": 0.90, "seed": seed,
@@ -287,6 +310,116 @@ def run(trials: int, seed: int, workers: int | None = None,
             "records": records}
 
 
+#: The sweep's two procedures, in the order they are charted: the drive as planned, and
+#: servoed on the tracked needle (issue 36, item 4).
+MODES = (("open_loop", False), ("servoed", True))
+
+
+def _sweep_trial(item: tuple[int, float, bool, tuple[float, float] | None]
+                 ) -> dict[str, Any]:
+    """:func:`run_trial` of one sweep item ``(seed, difficulty, servo, arm_error)``
+    (module level: it crosses to the pool's workers)."""
+    seed, difficulty, servo, arm_error = item
+    return run_trial(seed, arm_error, servo=servo, difficulty=difficulty)
+
+
+def _rate(records: list[dict[str, Any]]) -> dict[str, Any]:
+    """One sweep point: overall success, its Wilson interval, per-step rates and the
+    first failures by cause."""
+    from oralnav.control.needle.procedure import step_rates
+
+    rates = step_rates(records)
+    ok = sum(all(v is True for v in r["steps"].values()) for r in records)
+    return {"trials": len(records), "overall": rates["overall"],
+            "overall_interval": list(wilson(ok, len(records))), "steps": rates["steps"],
+            "undetected": sum(1 for r in records if r["failure"]
+                              and r["failure"]["cause"] == "undetected"),
+            "failure_causes": dict(Counter(f"{r['failure']['step']} {r['failure']['cause']}"
+                                           for r in records if r["failure"]))}
+
+
+def sweep(levels: Sequence[float], trials: int, seed: int, workers: int | None = None,
+          scheduler: str | None = None, arm_error: tuple[float, float] | None = None,
+          progress: bool = True) -> dict[str, Any]:
+    """The difficulty sweep (issue 36, item 4): ``trials`` seeds from ``seed`` at each of
+    ``levels`` (0..2, :func:`run_trial`), each run open-loop and servoed, all on one
+    engine (``scheduler``/``workers`` as :func:`run`); the document: per mode, per level,
+    the success with its interval, the step rates and the first failures."""
+    if trials < 1:
+        raise ValueError(f"needle bench: trials must be >= 1, got {trials}")
+    levels = sorted({difficulty_checked(d) for d in levels})
+    if len(levels) < 2:
+        raise ValueError("needle bench: a sweep needs at least two difficulties")
+    arm_error = arm_error_checked(arm_error)
+    seeds = list(range(seed, seed + trials))
+    items = [(s, d, servo, arm_error) for d in levels for _, servo in MODES for s in seeds]
+    if scheduler is None:
+        workers = max(1, min(workers or os.cpu_count() or 1, len(items)))
+    t0 = time.perf_counter()
+
+    def report(_i: int, rec: dict[str, Any], done: int, total: int) -> None:
+        if not progress:
+            return
+        f = rec["failure"]
+        left = (time.perf_counter() - t0) / done * (total - done)
+        print(f"needle sweep: difficulty {rec.get('difficulty', 1.0):g} "
+              f"{'servoed' if rec.get('servo') else 'open-loop'} trial {rec['seed']} "
+              f"({done}/{total}) {'ok' if f is None else f['step'] + ' ' + f['cause']}; "
+              f"about {left / 60:.1f} min left", file=sys.stderr, flush=True)
+
+    from oralnav.bench.executor import TrialRunner
+
+    with TrialRunner(scheduler, workers) as runner:
+        if progress:
+            print(f"needle sweep: {len(items)} trials ({len(levels)} difficulties x 2 "
+                  f"procedures x {trials} seeds) on {runner.name}", file=sys.stderr,
+                  flush=True)
+        records = runner.map(_sweep_trial, items, on_result=report)
+        engine, workers = runner.name, runner.workers
+    by = {(d, servo): [] for d in levels for _, servo in MODES}
+    for (_, d, servo, _), rec in zip(items, records, strict=True):
+        by[(d, servo)].append(rec)
+    return {"bench": "needle_difficulty", "levels": levels, "trials": trials,
+            "seed": seed, "split": seed_split(seeds[0], seeds[-1]),
+            "arm_error": _arm_error_json(arm_error),
+            "modes": {name: [{"difficulty": d, **_rate(by[(d, servo)])} for d in levels]
+                      for name, servo in MODES},
+            "seconds": round(time.perf_counter() - t0, 1),
+            "machine": {"cpus": os.cpu_count(), "workers": workers, "engine": engine,
+                        "python": platform.python_version()},
+            "records": records}
+
+
+def sweep_chart(doc: dict[str, Any], path: Path) -> None:
+    """Success against difficulty, open-loop beside servoed, with the 95 % intervals
+    (PNG at ``path``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for (name, _), colour, nudge in zip(MODES, ("tab:grey", "tab:blue"), (-0.012, 0.012),
+                                        strict=True):
+        pts = doc["modes"][name]
+        x = np.array([p["difficulty"] for p in pts]) + nudge
+        y = np.array([100 * p["overall"] for p in pts])
+        lo = y - np.array([100 * p["overall_interval"][0] for p in pts])
+        hi = np.array([100 * p["overall_interval"][1] for p in pts]) - y
+        ax.errorbar(x, y, yerr=[lo, hi], marker="o", capsize=3, color=colour,
+                    label=name.replace("_", "-"))
+    ax.axvline(1.0, color="0.8", lw=0.8, zorder=0)
+    err = doc["arm_error"]
+    ax.set(xlabel="difficulty (1: the default trials; above 1 the layout harder too)",
+           ylabel="overall success (%)", ylim=(0, 100),
+           title=f"needle procedure, {doc['trials']} {doc['split']} trials a point"
+                 + ("" if err is None else f", arm errors {err['mm']:g} mm / {err['deg']:g} deg"))
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def summary(doc: dict[str, Any]) -> dict[str, Any]:
     """The issue's JSON: ``{"trials", "overall", "steps"}``."""
     return {"trials": doc["trials"], "overall": doc["overall"], "steps": doc["steps"]}
@@ -295,23 +428,31 @@ def summary(doc: dict[str, Any]) -> dict[str, Any]:
 def main(out: Path, quick: bool = False, trials: int | None = None, seed: int = 0,
          workers: int | None = None, scheduler: str | None = None,
          validation: bool = False,
-         arm_error: tuple[float, float] | None = None, servo: bool = False
-         ) -> dict[str, Any]:
+         arm_error: tuple[float, float] | None = None, servo: bool = False,
+         difficulty: Sequence[float] = (1.0,)) -> dict[str, Any]:
     """Run the Monte Carlo (``quick``: 10 trials, ``validation``: ``VALIDATION_TRIALS``
     from ``VALIDATION_SEED``, else 200 unless ``trials`` is given; ``arm_error``: each
-    arm's kinematic error, mm and deg; ``servo``: the drive servoed) and write
-    ``needle.json`` into ``out``."""
+    arm's kinematic error, mm and deg; ``servo``: the drive servoed; ``difficulty``: the
+    trials', 0..2) and write ``needle.json`` into ``out``. With more than one
+    ``difficulty``, the sweep instead (:func:`sweep`, both procedures at each; 40 trials
+    a point unless ``trials``, 4 with ``quick``): ``needle_difficulty.json`` and
+    ``needle_difficulty.png``."""
     if validation:
         seed = VALIDATION_SEED
+    if len(difficulty) > 1:
+        return _main_sweep(out, difficulty, quick, trials, seed, workers, scheduler,
+                           arm_error)
     n = trials if trials is not None else (
         10 if quick else VALIDATION_TRIALS if validation else 200)
-    doc = run(n, seed, workers, scheduler=scheduler, arm_error=arm_error, servo=servo)
+    doc = run(n, seed, workers, scheduler=scheduler, arm_error=arm_error, servo=servo,
+              difficulty=difficulty[0])
     out.mkdir(parents=True, exist_ok=True)
     (out / "needle.json").write_text(json.dumps(doc, indent=1) + "\n")
     lo, hi = doc["overall_interval"]
     err = ("" if arm_error is None
            else f" with {arm_error[0]:g} mm / {arm_error[1]:g} deg arm errors")
     err += ", the drive servoed" if servo else ""
+    err += "" if doc["difficulty"] == 1.0 else f", difficulty {doc['difficulty']:g}"
     print(f"needle: {doc['trials']} trials on {doc['split']} seeds {seed}-{seed + n - 1}{err}, "
           f"overall {100 * doc['overall']:.1f} % ({100 * CONFIDENCE:.0f} % interval "
           f"{100 * lo:.1f}-{100 * hi:.1f} %; "
@@ -321,4 +462,27 @@ def main(out: Path, quick: bool = False, trials: int | None = None, seed: int = 
     for f in doc["failures"]:
         print(f"  {f['count']:4d} x {f['step']} {f['cause']}: {f['example'][:120]}",
               file=sys.stderr)
+    return doc
+
+
+def _main_sweep(out: Path, levels: Sequence[float], quick: bool, trials: int | None,
+                seed: int, workers: int | None, scheduler: str | None,
+                arm_error: tuple[float, float] | None) -> dict[str, Any]:
+    """:func:`main`'s sweep: run it, write its JSON and chart, print a line a point."""
+    n = trials if trials is not None else (4 if quick else 40)
+    doc = sweep(levels, n, seed, workers, scheduler, arm_error)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "needle_difficulty.json").write_text(json.dumps(doc, indent=1) + "\n")
+    sweep_chart(doc, out / "needle_difficulty.png")
+    print(f"needle sweep: {n} {doc['split']} trials a point from seed {seed}"
+          + ("" if arm_error is None
+             else f", {arm_error[0]:g} mm / {arm_error[1]:g} deg arm errors")
+          + f", {doc['seconds'] / 60:.1f} min", file=sys.stderr)
+    for k, d in enumerate(doc["levels"]):
+        a, b = (doc["modes"][name][k] for name, _ in MODES)
+        print(f"  difficulty {d:g}: open-loop {100 * a['overall']:.1f} % "
+              f"({100 * a['overall_interval'][0]:.1f}-{100 * a['overall_interval'][1]:.1f}), "
+              f"servoed {100 * b['overall']:.1f} % "
+              f"({100 * b['overall_interval'][0]:.1f}-{100 * b['overall_interval'][1]:.1f}); "
+              f"undetected {a['undetected']} / {b['undetected']}", file=sys.stderr)
     return doc

@@ -447,15 +447,34 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
     if args.validation and (args.seed is not None or args.quick):
         raise UsageError("--validation runs the validation seeds from "
                          f"{needle.VALIDATION_SEED}: give it without --seed or --quick")
+    levels = args.difficulty or [1.0]
+    try:
+        levels = [needle.difficulty_checked(d) for d in levels]
+    except ValueError as exc:
+        raise UsageError(f"--difficulty: {exc}") from None
+    sweeping = len(levels) > 1
+    if sweeping and (args.servo or args.tracking):
+        raise UsageError("a --difficulty sweep runs each difficulty open-loop and servoed, "
+                         "and charts no tracking: give it without --servo or --tracking")
     from oralnav.bench.executor import SchedulerError
 
     try:
         doc = needle.main(Path(args.out), quick=args.quick, trials=args.trials,
                           seed=args.seed or 0, workers=args.workers,
                           scheduler=args.scheduler, validation=args.validation,
-                          arm_error=arm_error, servo=args.servo)
+                          arm_error=arm_error, servo=args.servo, difficulty=levels)
     except SchedulerError as exc:
         raise UsageError(str(exc)) from None
+    if sweeping:
+        points = {name: [round(p["overall"], 4) for p in pts]
+                  for name, pts in doc["modes"].items()}
+        _emit(args, {"levels": doc["levels"], "trials": doc["trials"], "overall": points},
+              f"sweep over difficulties {', '.join(f'{d:g}' for d in doc['levels'])}: "
+              + "; ".join(f"{name.replace('_', '-')} "
+                          + ", ".join(f"{100 * v:.0f} %" for v in vals)
+                          for name, vals in points.items())
+              + f" (details in {Path(args.out) / 'needle_difficulty.json'})")
+        return 0
     s = needle.summary(doc)
     _emit(args, s, f"{s['trials']} trials on {doc['split']} seeds: "
                    f"overall {100 * s['overall']:.1f} %; "
@@ -732,6 +751,12 @@ def build_parser() -> argparse.ArgumentParser:
     nd.add_argument("--servo", action="store_true",
                     help="servo the drive on the needle tracked during it (the procedure's "
                          "drive_servo; default: open-loop, as planned)")
+    nd.add_argument("--difficulty", type=float, nargs="+", default=None, metavar="D",
+                    help="the trials' difficulty, 0..2 (default 1: the usual trials; up "
+                         "to 1 it scales the imaging nuisances, above 1 it also tilts the "
+                         "pad further and lifts the needle). Several values: the sweep, "
+                         "each run open-loop and servoed, 40 trials a point (4 with "
+                         "--quick): needle_difficulty.json and .png")
     nd.add_argument("--quick", action="store_true", help="fewer trials")
     nd.add_argument("--out", required=True, help="folder for needle.json (and charts)")
     nd.add_argument("--json", action="store_true",

@@ -144,10 +144,11 @@ class GuidePlanBody(_Body):
 
 class NeedleCellBody(_Body):
     """``POST /needle/cell``: load simulated needle trial ``trial`` (a seed) with imaging
-    nuisances scaled by ``difficulty`` (0..1)."""
+    nuisances scaled by ``difficulty`` (0..2; above 1 a harder layout too:
+    ``oralnav.sim.world.needle_trials.MAX_DIFFICULTY``)."""
 
     trial: Annotated[int, Field(ge=0, le=2**32 - 1, strict=True)]
-    difficulty: Annotated[float, Field(ge=0.0, le=1.0)] = 1.0
+    difficulty: Annotated[float, Field(ge=0.0, le=2.0)] = 1.0
 
 
 class TemporalCalibrationBody(_Body):

@@ -717,14 +717,18 @@ class NeedleTracker:
         starts += [T @ S for T in starts for S in _SLIDES]
         return self._finish(features, est, starts)
 
-    def predict(self, delta: np.ndarray | None = None, *, trusted: bool = True) -> None:
+    def predict(self, delta: np.ndarray | None = None, *, trusted: bool = True,
+                kinematic: bool = True) -> None:
         """Motion update: :meth:`NeedleFilter.predict`; the last refined pose moves with
         the gripper too (it is the refinement's first start next update). ``delta``
         known (a held needle's gripper motion, or the identity for a needle that stays):
         that pose and its covariance, widened by the drift, are the next update's prior
         (:class:`TrackSettings`); ``trusted=False``: the motion is what a check tests
         (did the needle follow the jaws?), or the jaws just closed on the needle and may
-        have shifted it: only the slide is carried."""
+        have shifted it: only the slide is carried. ``kinematic=False``: ``delta`` is not
+        an arm's reported motion but the needle's own, predicted from what was seen (a
+        servo's model of the arm's error): ``turn_drift`` and ``travel_drift`` do not
+        apply."""
         self.filter.predict(delta)
         self._prior_full = trusted
         still = delta is not None and np.allclose(delta, np.eye(4), rtol=0.0, atol=1e-12)
@@ -747,7 +751,7 @@ class NeedleTracker:
         slide = s.slide_drift if not trusted or not still else 0.0
         T_b, cov = self._belief
         position = s.position_drift
-        if s.turn_drift or s.travel_drift:
+        if kinematic and (s.turn_drift or s.travel_drift):
             D = np.asarray(delta, dtype=float)
             turn = rotation_angle(D[:3, :3])
             travel = float(np.linalg.norm(D[:3, :3] @ T_b[:3, 3] + D[:3, 3] - T_b[:3, 3]))

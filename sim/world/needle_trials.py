@@ -44,9 +44,15 @@ Imaging: background 20-50 DN, pad 150-200, needle 60-90 with a specular 120-200,
 illumination gradient each in [-0.35, 0.35], blur 0.8-1.5 px, read noise 1-3 DN, shot
 gain 0.03-0.1, supersample 2.
 
-``difficulty`` (0..1, default 1) scales the imaging nuisances (the illumination gradient,
-the blur above 0.8 px, the noise above its floor) without changing the draw: the layout is
-drawn first, so a seed gives the same layout at every difficulty.
+``difficulty`` (0..``MAX_DIFFICULTY`` = 2, default 1) scales the imaging nuisances (the
+illumination gradient, the blur above 0.8 px, the noise above its floor) in proportion:
+at 2 the gradient reaches +-0.7, the blur 2.2 px, the read noise 5 DN and the shot gain
+0.17. Up to 1 it leaves the draw alone: the layout is drawn first, so a seed gives the
+same layout at every difficulty up to 1. Above 1 the layout gets harder too, so its
+draw differs from the default's: the pad's tilt range widens from 10-35 deg to
+10-(10 + 25 x difficulty) deg (60 deg at 2), and the needle no longer lies flat: it
+rests on its two ends, its plane turned about the chord between them by up to
+``MAX_LIFT`` x (difficulty - 1) (30 deg at 2), the arc's middle raised off the pad.
 
 ``arm_error`` (off by default): each arm's kinematic error, the transform between where
 it reports its tool and where the tool is (``NeedleCell``'s ``kinematic_error``), as a
@@ -72,7 +78,8 @@ from oralnav.control.vision.camera import Rig
 from oralnav.sim.world.needle_cell import ArmReach, CellError, NeedleCell
 from oralnav.sim.world.scene import Gripper, Imaging, NeedleObject, Scene, TissuePad
 
-__all__ = ["PairCheck", "PortCheck", "TrialInfo", "arm_errors", "trial_cell", "trial_scene"]
+__all__ = ["MAX_DIFFICULTY", "PairCheck", "PortCheck", "TrialInfo", "arm_errors", "trial_cell",
+           "trial_scene"]
 
 PAD_SIZE = (0.070, 0.060)
 CT1 = Needle(radius=0.013, wire_diameter=0.001, arc=math.pi)
@@ -119,6 +126,11 @@ PairCheck = Callable[[Mapping[str, ArmReach], np.ndarray, np.ndarray, np.ndarray
                       np.ndarray], bool]
 #: The most port pairs a trial asks ``workable`` about (of PORT_CANDIDATES squared).
 PAIR_CHECKS = 40
+#: The hardest trials :func:`trial_scene` draws (``difficulty``); 1 is the default.
+MAX_DIFFICULTY = 2.0
+#: Above difficulty 1 the needle rests lifted about its chord, its plane turned out of
+#: the pad's by up to this much (rad) times ``difficulty - 1``.
+MAX_LIFT = math.radians(30.0)
 #: The second word of the arm errors' seed (``[seed, ARM_ERROR_STREAM]``): a stream apart
 #: from the layout's, which ``seed`` alone seeds.
 ARM_ERROR_STREAM = 1
@@ -213,8 +225,8 @@ def trial_scene(seed: int, *, rig: Rig, difficulty: float = 1.0,
                         "drivable check draws: give both")
     if not (isinstance(seed, int | np.integer) and 0 <= seed < 2**63):
         raise CellError(f"trial seed must be an integer in [0, 2^63), got {seed!r}")
-    if not (math.isfinite(difficulty) and 0.0 <= difficulty <= 1.0):
-        raise CellError(f"difficulty must be in [0, 1], got {difficulty}")
+    if not (math.isfinite(difficulty) and 0.0 <= difficulty <= MAX_DIFFICULTY):
+        raise CellError(f"difficulty must be in [0, {MAX_DIFFICULTY:g}], got {difficulty}")
     rng = np.random.default_rng(int(seed))
     D = float(difficulty)
     u = rng.uniform
@@ -224,7 +236,7 @@ def trial_scene(seed: int, *, rig: Rig, difficulty: float = 1.0,
         attempts += 1
         if attempts > MAX_ATTEMPTS:  # the shipped rig needs 1-2 attempts
             raise CellError(f"trial {seed}: no valid layout in {MAX_ATTEMPTS} attempts")
-        out = _draw(rig, rng, drivable, workable)
+        out = _draw(rig, rng, drivable, workable, max(0.0, D - 1.0))
     scene_parts, reach, values, incision, normal = out
     img = dict(background=u(20.0, 50.0), pad_level=u(150.0, 200.0),
                needle_level=u(60.0, 90.0), specular=u(120.0, 200.0),
@@ -354,14 +366,19 @@ def _choose_ports(sites: dict[str, list[ArmReach]], incision: np.ndarray, normal
 
 
 def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None,
-          workable: PairCheck | None = None):
+          workable: PairCheck | None = None, harder: float = 0.0):
     """One attempt at the layout; ``None`` if a constraint fails (the caller draws
-    again from the same stream)."""
+    again from the same stream). ``harder``: the difficulty above 1 (0..1), which widens
+    the pad's tilt and lifts the needle (module docstring); at 0 the draw is the
+    default's, number for number."""
     u = rng.uniform
     # -- the pad ------------------------------------------------------------------------
     centre = np.array([0.0025 + u(-0.004, 0.004), u(-0.004, 0.004), u(0.080, 0.120)])
     toward = -centre / np.linalg.norm(centre)             # from the pad to the camera
-    tilt = math.radians(u(10.0, 35.0))
+    tilt = u(10.0, 35.0)
+    if harder > 0.0:
+        tilt = 10.0 + (tilt - 10.0) * (1.0 + harder)
+    tilt = math.radians(tilt)
     azimuth = u(0.0, 2 * math.pi)
     e1 = np.cross(toward, [0.0, 1.0, 0.0])
     e1 /= np.linalg.norm(e1)
@@ -388,11 +405,17 @@ def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None,
         return None
     # -- the needle, lying on the pad ---------------------------------------------------
     arc = CT1.points(64)
+    lift = 0.0
     for _ in range(50):
         c = np.array([u(-0.5 * sx, 0.5 * sx), u(-0.5 * sy, 0.5 * sy)])
         turn = u(0.0, 2 * math.pi)
-        T_pad_needle = make_transform(Rotation.from_rotvec([0.0, 0.0, turn]),
-                                      [c[0], c[1], 0.5 * CT1.wire_diameter])
+        R_pad_needle = Rotation.from_rotvec([0.0, 0.0, turn])
+        if harder > 0.0:
+            # resting on its two ends (N's x axis is the chord between them): turned
+            # about the chord, the arc (N's +y side) rises off the pad
+            lift = u(0.0, MAX_LIFT * harder)
+            R_pad_needle = R_pad_needle * Rotation.from_rotvec([lift, 0.0, 0.0])
+        T_pad_needle = make_transform(R_pad_needle, [c[0], c[1], 0.5 * CT1.wire_diameter])
         on_pad = transform_points(T_pad_needle, arc)
         if np.any(np.abs(on_pad[:, :2]) > [0.5 * sx - EDGE_CLEARANCE,
                                            0.5 * sy - EDGE_CLEARANCE]):
@@ -467,6 +490,7 @@ def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None,
         "incision": {"length": _r(length), "angle_deg": _r(math.degrees(inc_angle), 4),
                      "mid_pad_xy": _r(inc_mid), "ends_pad_xy": [_r(a), _r(b)]},
         "needle": {"centre_pad_xy": _r(c), "turn_deg": _r(math.degrees(turn), 4),
+                   **({"lift_deg": _r(math.degrees(lift), 4)} if harder > 0.0 else {}),
                    "radius": CT1.radius, "wire_diameter": CT1.wire_diameter,
                    "arc_deg": 180.0, "thread_length": THREAD_LENGTH},
         "arms": arms,

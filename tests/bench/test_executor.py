@@ -165,6 +165,39 @@ def test_workers_share_the_cores_among_their_kernels(cluster):
     assert cluster.map(numba_threads, [0, 1, 2, 3]) == [share] * 4
 
 
+def test_a_worker_whose_numba_is_preloaded_can_still_compile():
+    """Issue 36 item 3 (regression): the fork server preloads `oralnav`'s main module,
+    which imports numba, so a worker may start with numba's thread pool sized already
+    (here 4). Its start must not name another size in the environment: a kernel whose
+    cache a code change made stale compiles in the worker, the compile re-reads the
+    environment, and numba then raised "Cannot set NUMBA_NUM_THREADS to a different
+    value once the threads have been launched" and stopped every sweep. The worker
+    compiles a fresh parallel kernel and runs it on its share of the threads (1)."""
+    import os
+    import subprocess
+
+    code = """
+import os, numba, numpy as np
+from oralnav.bench.executor import _worker_start
+_worker_start(os.getpid(), 1)
+
+@numba.njit(parallel=True)
+def total(x):
+    s = 0.0
+    for i in numba.prange(x.size):
+        s += x[i]
+    return s
+
+assert total(np.ones(1000)) == 1000.0
+print(numba.get_num_threads(), numba.config.NUMBA_NUM_THREADS)
+"""
+    env = {**os.environ, "NUMBA_NUM_THREADS": "4"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["1", "4"]
+
+
 def test_local_cluster_workers_do_not_profile_the_trials(cluster, tmp_path):
     """Issue 35 target (LocalCluster within 10 % of the pool): Dask's statistical profiler
     takes the GIL from the trial every 10 ms (a needle trial 20.0-24.8 s with it against

@@ -6,6 +6,7 @@ The trials are stand-ins here (the procedure's own tests run it)."""
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 
@@ -115,3 +116,70 @@ def test_a_servoed_run_reaches_every_trial_and_is_recorded(monkeypatch, tmp_path
     assert all("servo" not in r for r in again["records"])
     needle.main(tmp_path, trials=1, seed=0, workers=1, servo=True)
     assert "the drive servoed" in capsys.readouterr().err
+
+
+def _difficulty_trial(seed: int, arm_error=None, servo: bool = False,
+                      difficulty: float = 1.0) -> dict:
+    """A stand-in trial: the open-loop procedure fails the drive above difficulty 1 (the
+    first failure undetected on even seeds), the servoed one never; both record what
+    they were given, as run_trial does."""
+    ok = servo or difficulty <= 1.0
+    steps = {s: ok for s in ("NG", "NH", "ND", "NR", "NP")}
+    failure = None
+    if not ok:
+        steps.update(ND=False, NR=None, NP=None)
+        failure = {"step": "ND", "cause": "undetected" if seed % 2 == 0 else "exit_missed",
+                   "detail": "stand-in", "truth": ""}
+    rec = {"seed": seed, "steps": steps, "failure": failure, "seconds": 0.1, "results": []}
+    if servo:
+        rec["servo"] = True
+    if difficulty != 1.0:
+        rec["difficulty"] = difficulty
+    if arm_error is not None:
+        rec["arm_error"] = {"mm": arm_error[0], "deg": arm_error[1]}
+    return rec
+
+
+def test_the_difficulty_sweep_runs_both_procedures_at_each_level(monkeypatch, tmp_path,
+                                                                  capsys):
+    """Issue 36 item 4: the sweep runs every seed at every difficulty (sorted, repeats
+    dropped) open-loop and servoed, with the arm error given to each; the document
+    gives per procedure and level the success, its Wilson interval (4 of 4: 51.0-100 %),
+    the undetected failures and the causes; main writes needle_difficulty.json and a PNG
+    chart and prints a line a level."""
+    monkeypatch.setattr(needle, "run_trial", _difficulty_trial)
+    doc = needle.main(tmp_path, trials=4, seed=10, workers=1, difficulty=[2.0, 0.0, 1.0, 2.0],
+                      arm_error=(1.0, 0.5))
+    assert doc["levels"] == [0.0, 1.0, 2.0] and doc["split"] == "development"
+    assert len(doc["records"]) == 3 * 2 * 4
+    assert {(r.get("difficulty", 1.0), r.get("servo", False), r["seed"])
+            for r in doc["records"]} == {(d, m, s) for d in (0.0, 1.0, 2.0)
+                                         for m in (False, True) for s in range(10, 14)}
+    assert all(r["arm_error"] == {"mm": 1.0, "deg": 0.5} for r in doc["records"])
+    open_loop, servoed = doc["modes"]["open_loop"], doc["modes"]["servoed"]
+    assert [p["overall"] for p in open_loop] == [1.0, 1.0, 0.0]
+    assert [p["overall"] for p in servoed] == [1.0, 1.0, 1.0]
+    assert open_loop[2]["undetected"] == 2 and open_loop[2]["failure_causes"] == {
+        "ND undetected": 2, "ND exit_missed": 2}
+    lo, hi = servoed[0]["overall_interval"]
+    assert lo == pytest.approx(0.510, abs=5e-3) and hi == pytest.approx(1.0)
+    saved = json.loads((tmp_path / "needle_difficulty.json").read_text())
+    assert saved["modes"] == doc["modes"]
+    assert (tmp_path / "needle_difficulty.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    err = capsys.readouterr().err
+    assert "difficulty 2: open-loop 0.0 %" in err and "servoed 100.0 %" in err
+
+
+def test_bad_difficulties_are_refused_before_any_trial(monkeypatch):
+    """A difficulty outside 0..2 or not finite, or a sweep of one level, is a ValueError
+    naming it, and no trial runs."""
+    ran = []
+    monkeypatch.setattr(needle, "run_trial", lambda *a, **k: ran.append(a))
+    for bad in ([0.0, 2.5], [math.nan, 1.0]):
+        with pytest.raises(ValueError, match="difficulty must be within 0..2"):
+            needle.sweep(bad, 2, 0, workers=1, progress=False)
+    with pytest.raises(ValueError, match="at least two"):
+        needle.sweep([1.0, 1.0], 2, 0, workers=1, progress=False)
+    with pytest.raises(ValueError, match="within 0..2"):
+        needle.run(1, 0, workers=1, progress=False, difficulty=-1.0)
+    assert ran == []

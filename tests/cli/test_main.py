@@ -185,6 +185,43 @@ def test_bench_needle_arm_error_is_passed_or_refused(tmp_path, capsys, monkeypat
     assert len(calls) == 1
 
 
+def test_bench_needle_difficulty_runs_a_level_or_the_sweep(tmp_path, capsys, monkeypatch):
+    """Issue 36 item 4: `--difficulty 1.5` runs the Monte Carlo at that difficulty;
+    several values run the sweep (both procedures; --json prints one object with each
+    procedure's success per level); a value outside 0..2, or a sweep with --servo or
+    --tracking, is bad input (exit 2, naming the option) and runs nothing."""
+    from oralnav.bench import needle
+
+    calls = []
+    steps = {k: 1.0 for k in ("NG", "NH", "ND", "NR", "NP")}
+
+    def main(out, **kw):
+        calls.append(kw)
+        if len(kw["difficulty"]) == 1:
+            return {"trials": 2, "overall": 1.0, "steps": steps, "split": "development"}
+        pts = [{"overall": 0.5}, {"overall": 0.25}]
+        return {"levels": kw["difficulty"], "trials": 2,
+                "modes": {"open_loop": pts, "servoed": pts[::-1]}}
+
+    monkeypatch.setattr(needle, "main", main)
+    assert cli.run(["bench", "needle", "--trials", "2", "--difficulty", "1.5", "--out",
+                    str(tmp_path)]) == 0
+    assert calls[-1]["difficulty"] == [1.5]
+    capsys.readouterr()
+    assert cli.run(["bench", "needle", "--trials", "2", "--difficulty", "0", "2", "--out",
+                    str(tmp_path), "--json"]) == 0
+    assert _one_json(capsys) == {"levels": [0.0, 2.0], "trials": 2,
+                                 "overall": {"open_loop": [0.5, 0.25],
+                                             "servoed": [0.25, 0.5]}}
+    for bad, why in ((["--difficulty", "2.5"], "--difficulty"),
+                     (["--difficulty", "nan"], "--difficulty"),
+                     (["--difficulty", "0", "1", "--servo"], "without --servo"),
+                     (["--difficulty", "0", "1", "--tracking"], "without --servo")):
+        assert cli.run(["bench", "needle", *bad, "--out", str(tmp_path), "--json"]) == 2
+        assert why in _one_json(capsys)["error"]
+    assert len(calls) == 2
+
+
 def test_bench_needle_bad_counts_exit_2_naming_the_option(tmp_path, capsys):
     """issue 30: `oralnav bench needle --trials 0` (or --workers 0) is bad input: exit
     status 2 and a message naming the option, before any trial runs."""

@@ -1060,7 +1060,7 @@ async def test_needle_cell_and_steps_over_rest(client, rig):
     assert r.status_code == 409 and "not converged" in r.json()["detail"]
     for bad in ("/needle/ng", "/needle/XX"):
         assert (await client.post(bad, headers=rig.op)).status_code == 422
-    for body in ({"trial": -1}, {"trial": "3"}, {"trial": 1, "difficulty": 2.0},
+    for body in ({"trial": -1}, {"trial": "3"}, {"trial": 1, "difficulty": 2.5},
                  {"trial": 1, "extra": 0}):
         r = await client.post("/needle/cell", headers=rig.op, json=body)
         assert r.status_code == 422, body

@@ -95,8 +95,8 @@ class _QuickNeedles:
         return {"cell": self.cell, "running": None, "procedure": None}
 
     def load_trial(self, trial: int, difficulty: float, who: str) -> dict:
-        if not 0.0 <= difficulty <= 1.0:
-            raise ValueError(f"difficulty must be in [0, 1], got {difficulty}")
+        if not 0.0 <= difficulty <= 2.0:
+            raise ValueError(f"difficulty must be in [0, 2], got {difficulty}")
         self.cell = trial
         return self.status()
 

@@ -49,13 +49,15 @@ class CellActions:
                 for cam, w, m in zip(self.cams, self._wire_px, self._masks, strict=True)]
 
     def _look(self, delta: np.ndarray | None = None, *, static: bool = True,
-              init: bool = False, trusted: bool = True) -> NeedleTrack:
+              init: bool = False, trusted: bool = True, kinematic: bool = True
+              ) -> NeedleTrack:
         """Track on fresh frames: a global initialisation (``init``), or ``updates``
         updates, the first predicted with the gripper's motion ``delta`` (a held needle),
         the others with no motion (``static``: held or in the tissue, the grasped noise)
         or Brownian motion (free). ``trusted=False``: the first motion is what a check
         tests, or the jaws closed since the last look (the tracker carries only the
-        slide, :meth:`.NeedleTracker.predict`)."""
+        slide, :meth:`.NeedleTracker.predict`). ``kinematic=False``: ``delta`` is the
+        needle's motion as a servo's model predicts it, not the arm's reported one."""
         s = self.s
         still = np.eye(4) if static else None
         # the grippers where they are now hide part of the needle
@@ -77,7 +79,8 @@ class CellActions:
             tr = None
             for k in range(s.updates):
                 self.tracker.predict(delta if k == 0 and delta is not None else still,
-                                     trusted=trusted or k > 0)
+                                     trusted=trusted or k > 0,
+                                     kinematic=kinematic or k > 0)
                 tr = self.tracker.update(self._features())
         assert tr is not None
         self.track = tr

@@ -455,12 +455,12 @@ class NeedleProcedure(CellActions):
                 drive, choice = self._drive_on(B, tr.pose)
         # else: the gripper may hide the needle here; the grasp seen before the approach
         # moved rigidly with the jaws, so the drive keeps it
-        servoed, T_looked = self._drive_along(B, drive, self.cell.gripper_pose(B))
+        servoed, moved = self._drive_along(B, drive, self.cell.gripper_pose(B))
         self.in_tissue = True
         # from here the tissue hides the needle's middle: the tracker must not take it
         # for missing wire
         self.tracker.set_occluder(TissuePlane(self.incision.mean(axis=0), self.normal))
-        tr = self._look(self.cell.gripper_pose(B) @ invert(T_looked))
+        tr = self._look(moved)
         tip_plan = drive.G_PS @ drive.G_SN[-1]
         tip_plan = tip_plan[:3, :3] @ self.needle.tip + tip_plan[:3, 3]
         tip_seen = tr.pose[:3, :3] @ self.needle.tip + tr.pose[:3, 3]
@@ -494,16 +494,21 @@ class NeedleProcedure(CellActions):
         seen). Looks stop where the plan hides more than ``servo_shown`` of the arc in
         the tissue; a look that leaves the circle uncertain is not used, and the drive
         carries on on the model's prediction once its looks span ``servo_span`` of the
-        turn, and stops before that. A lost track, a stale frame, a jump, or a corrected
-        pose out of reach stops the drive where it is, naming the cause. Returns the
-        servo's figures (none open-loop) and the arm's reported pose when the tracker
-        last looked (the next look's motion is the arm's since then)."""
+        turn, and stops before that. Until the servo has used a look (the approach's may
+        be lost or uncertain: low over the tissue, across the masked incision), the arm
+        goes on as planned, as open-loop; once it has, a lost track, a stale frame, a
+        jump, or a corrected pose out of reach stops the drive where it is, naming the
+        cause. Returns the
+        servo's figures (none open-loop) and the needle's motion since the tracker last
+        looked (4x4, reference frame, left factor; the next look's): the arm's reported
+        motion open-loop, the servo model's prediction servoed (the corrections since
+        cancel the wander the reported motion does not show)."""
         s = self.s
         n = len(drive.G_PT)
         if s.drive_servo is None:
             for k, T in enumerate(drive.G_PT):
                 self._move(arm, T, f"drive pose {k + 1} of {n}")
-            return {}, approach
+            return {}, self.cell.gripper_pose(arm) @ invert(approach)
         goals = drive.G_PS @ drive.G_SN
         # the approach is the first pose the servo steers: the needle there is the
         # drive's first pose moved as the gripper backs off from it
@@ -517,7 +522,7 @@ class NeedleProcedure(CellActions):
         used = None                     # (k, applied correction) of the last look used
         looked = None                   # ... of the tracker's last look
         errors: list[float] = []
-        blind = 0
+        blind = unused = 0
 
         def go(T: np.ndarray, what: str) -> None:
             ok, why = self._reach(arm, [T], 0.0)
@@ -544,7 +549,7 @@ class NeedleProcedure(CellActions):
                 # arm's error predicts it, once it has one
                 motion = (now @ invert(at_frame) if looked is None
                           else servo.predicted(k, D) @ invert(servo.predicted(*looked)))
-                tr = self._look(motion)
+                tr = self._look(motion, kinematic=looked is None)
                 at_frame, looked = now, (k, D)
                 stamp = time.monotonic()
                 try:
@@ -556,6 +561,11 @@ class NeedleProcedure(CellActions):
                     if exc.cause == "uncertain" and servo.span >= s.servo_span:
                         blind += 1
                         break
+                    if used is None and exc.cause in ("lost", "uncertain"):
+                        # the servo has not started: nothing it commands rests on this
+                        # look; the arm goes on as planned until a look it can use
+                        unused += 1
+                        break
                     raise StepFailed(f"servo_{exc.cause}",
                                      f"{name(k)}: {exc.detail}") from None
                 used = (k, D)
@@ -564,12 +574,15 @@ class NeedleProcedure(CellActions):
                 D = servo.correction(k)
                 go(D @ poses[k], f"{name(k)}, correction {attempt + 1}")
         return {"servo_looks": len(errors), "servo_blind_looks": blind,
+                "servo_unused_looks": unused,
                 "servo_span_deg": round(math.degrees(servo.span), 1),
                 "servo_first_error_mm": round(errors[0] * 1e3, 3) if errors else None,
                 "servo_max_error_mm": round(max(errors) * 1e3, 3) if errors else None,
                 "servo_last_error_mm": round(errors[-1] * 1e3, 3) if errors else None,
                 "servo_correction_mm": round(float(np.linalg.norm(
-                    servo.correction(n)[:3, 3])) * 1e3, 3)}, at_frame
+                    servo.correction(n)[:3, 3])) * 1e3, 3)}, (
+                        self.cell.gripper_pose(arm) @ invert(at_frame) if looked is None
+                        else servo.predicted(n, D) @ invert(servo.predicted(*looked)))
 
     def _arc_under(self, T_N: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:func:`_arc_under` on this procedure's tissue surface."""

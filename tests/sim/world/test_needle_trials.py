@@ -74,8 +74,9 @@ def test_the_draw_is_deterministic(trials):
     assert easy.values["arms"] == b_info.values["arms"]
     assert easy_scene.imaging.illumination_gradient == (0.0, 0.0)
     assert easy_scene.imaging.blur_sigma_px == 0.8 and easy_scene.imaging.read_noise_dn == 1.0
-    with pytest.raises(CellError, match="difficulty"):
-        trial_scene(3, rig=RIG, difficulty=1.5)
+    for bad in (2.5, -0.1, math.nan):
+        with pytest.raises(CellError, match="difficulty"):
+            trial_scene(3, rig=RIG, difficulty=bad)
 
 
 def test_layout_follows_the_rules(trials):
@@ -125,6 +126,38 @@ def test_layout_follows_the_rules(trials):
         assert 0.03 <= scene.imaging.shot_noise_gain <= 0.1
         assert scene.imaging.supersample == 2 and im["background"] == pytest.approx(
             scene.imaging.background, abs=1e-4)
+
+
+def test_harder_trials_tilt_the_pad_further_and_lift_the_needle(trials):
+    """Issue 36, item 4 (``difficulty`` above 1): at 2 the pad tilts 10-60 deg (at least
+    one of the 20 seeds beyond the default 35), the needle rests on its two ends (both
+    half the wire above the pad), its plane turned 0-30 deg about the chord between them
+    (the value recorded, every arc point on or above the pad), and the imaging nuisances
+    reach twice the default's ranges; at 1.5 the lift is at most 15 deg; the default's
+    layout is the same draw as before (no ``lift_deg``)."""
+    tilts, lifts = [], []
+    for seed in SEEDS:
+        scene, _, info = trial_scene(seed, rig=RIG, difficulty=2.0)
+        pad, nd = scene.pads[0], scene.needles[0]
+        centre, normal = pad.T_ref_pad[:3, 3], pad.T_ref_pad[:3, 2]
+        tilt = math.degrees(math.acos(-normal @ centre / np.linalg.norm(centre)))
+        assert 10.0 - 1e-6 <= tilt <= 60.0 + 1e-6
+        T_pad_needle = invert(pad.T_ref_pad) @ nd.T_ref_needle
+        lift = math.degrees(math.acos(np.clip(T_pad_needle[2, 2], -1.0, 1.0)))
+        assert lift == pytest.approx(info.values["needle"]["lift_deg"], abs=1e-3)
+        assert 0.0 <= lift <= 30.0 + 1e-9
+        arc = transform_points(T_pad_needle, nd.needle.points(200))
+        assert arc[:, 2].min() >= 0.0005 - 1e-9
+        np.testing.assert_allclose(arc[[0, -1], 2], 0.0005, atol=1e-9)
+        im = scene.imaging
+        assert all(abs(g) <= 0.7 for g in im.illumination_gradient)
+        assert 0.8 <= im.blur_sigma_px <= 2.2 and 1.0 <= im.read_noise_dn <= 5.0
+        tilts.append(tilt)
+        lifts.append(lift)
+        assert "lift_deg" not in trials[seed][2].values["needle"]
+    assert max(tilts) > 35.0 and max(lifts) > 15.0, (max(tilts), max(lifts))
+    _, _, half = trial_scene(0, rig=RIG, difficulty=1.5)
+    assert 0.0 <= half.values["needle"]["lift_deg"] <= 15.0
 
 
 def test_arms_reach_the_needle_and_incision_but_not_everything(trials):
