@@ -60,13 +60,13 @@ def test_a_track_lost_mid_drive_stops_the_arm_where_it_is():
 def test_the_servoed_drive_corrects_an_arm_error_before_the_tip_enters():
     """Issue 36, item 1: trial 103 with a 1 mm / 0.5 deg error on each arm, whose
     open-loop drive enters 2.9 mm off the plan (``oralnav bench needle --seed 103
-    --arm-error 1 0.5``): servoed, the looks at the approach find the centre 2.4 mm off
+    --arm-error 1 0.5``): servoed, the look at the approach finds the centre 2.4 mm off
     and correct it before the tip touches the tissue, the drive passes and the truth
-    agrees, the servo having learnt from looks over at least ``servo_span`` of the turn."""
+    agrees, the servo having learnt from looks over the first 30 deg of the turn or more."""
     cell, proc = _to_the_drive(103, replace(SERVOED, arm_accuracy=ARM_ERROR),
                                arm_error=ARM_ERROR)
     r = proc.run("ND")
     assert r.ok and r.truth_ok, r
     f = r.figures
     assert f["servo_first_error_mm"] > 2.0 and f["servo_last_error_mm"] < 0.3, f
-    assert f["servo_span_deg"] >= math.degrees(SERVOED.servo_span) - 0.5, f
+    assert f["servo_span_deg"] >= 30.0, f
