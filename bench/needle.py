@@ -411,9 +411,10 @@ def sweep_chart(doc: dict[str, Any], path: Path) -> None:
     ax.axvline(1.0, color="0.8", lw=0.8, zorder=0)
     err = doc["arm_error"]
     ax.set(xlabel="difficulty (1: the default trials; above 1 the layout harder too)",
-           ylabel="overall success (%)", ylim=(0, 100),
-           title=f"needle procedure, {doc['trials']} {doc['split']} trials a point"
-                 + ("" if err is None else f", arm errors {err['mm']:g} mm / {err['deg']:g} deg"))
+           ylabel="overall success (%)", ylim=(0, 100))
+    ax.set_title(f"needle procedure, {doc['trials']} {doc['split']} trials a point"
+                 + ("" if err is None
+                    else f"\narm errors {err['mm']:g} mm / {err['deg']:g} deg"), fontsize=10)
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=110)
