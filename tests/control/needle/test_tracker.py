@@ -441,6 +441,31 @@ def test_an_inexact_arm_widens_the_position_by_the_motion_s_size(driven):
         TrackSettings(turn_drift=-1.0)
 
 
+def test_a_servo_s_motions_drift_by_their_share_of_a_half_turn(driven):
+    """Issue 36 (the servoed drive's looks): a motion a servo's model predicts
+    (``kinematic=False``) widens the slide and the tilt by its share of a half turn, so
+    a turn looked at in nine steps adds what one open-loop motion adds (a drift per look
+    took the slide's sigma to 3.5 deg by the regrasp); the arm's accuracy drifts do not
+    apply to it."""
+    tr = copy.deepcopy(driven.tracker)
+    tr.s = replace(tr.s, turn_drift=0.002, travel_drift=0.01)
+    T_b, cov = tr._belief
+    c = T_b[:3, 3]
+    step = (transform_from_euler(c, [0.0, 0.0, 0.0])
+            @ transform_from_euler([0.0, 0.0, 0.0], [0.0, 0.0, 20.0])
+            @ transform_from_euler(-c, [0.0, 0.0, 0.0]))
+    for _ in range(9):
+        tr.predict(step, kinematic=False)
+    added = np.diag(tr._belief[1] - cov)
+    assert added[2] == pytest.approx(tr.s.slide_drift ** 2, rel=1e-9)
+    np.testing.assert_allclose(added[:2], tr.s.tilt_drift ** 2, rtol=1e-9)
+    np.testing.assert_allclose(added[3:], 9 * tr.s.position_drift ** 2, rtol=1e-9)
+    one = copy.deepcopy(driven.tracker)
+    T_b, cov = one._belief
+    one.predict(step)
+    assert np.diag(one._belief[1] - cov)[2] == pytest.approx(one.s.slide_drift ** 2)
+
+
 def test_jaws_that_close_and_hide_the_wire_leave_the_belief_standing(driven):
     """The motion prior after an update that fits nothing: where the jaws just closed
     (an untrusted look, nothing moved) and hide the wire, what was known stands, its
