@@ -90,8 +90,10 @@ class ServoSettings:
 @dataclass(frozen=True)
 class Seen:
     """One tracked frame: the needle's pose ``T_ref_N`` (4x4, m), the frame's capture
-    ``stamp`` (s), whether the tracker ``converged`` on it (``reason`` when not), and the
-    pose's one-sigma ``sigma_position`` (m) and ``sigma_angle`` (rad)."""
+    ``stamp`` (s), whether the tracker ``converged`` on it (``reason`` when not), the
+    pose's one-sigma ``sigma_position`` (m) and ``sigma_angle`` (rad), and whether the
+    fit found too little of the arc while matching what it found (``short``:
+    ``NeedleTrack.short``)."""
 
     pose: np.ndarray
     stamp: float
@@ -99,6 +101,7 @@ class Seen:
     reason: str = ""
     sigma_position: float = 0.0
     sigma_angle: float = 0.0
+    short: bool = False
 
     @classmethod
     def from_track(cls, track, stamp: float, held: bool = False) -> Seen:
@@ -112,7 +115,8 @@ class Seen:
         reason = track.held_reason if held else track.reason
         angle = math.inf if r is None else float(r.sigma_tilt if held else r.sigma_angle)
         return cls(np.asarray(track.pose, dtype=float), float(stamp), not reason, reason,
-                   math.inf if r is None else float(r.sigma_position), angle)
+                   math.inf if r is None else float(r.sigma_position), angle,
+                   bool(getattr(track, "short", False)))
 
 
 class ServoStop(NeedleError):
@@ -274,10 +278,12 @@ class DriveServo:
     the translation that puts the centre on the plan, which carries the drive on where the
     views lose the centre (half the arc under the tissue, the rest near the jaws).
 
-    Guards (each a :class:`ServoStop`): ``not_finite``; ``uncertain``: the centre's or
-    the plane's sigma over the settings' bounds (the caller may carry on on the model's
-    prediction, :attr:`span`, or stop); ``lost``: the tracker not converged for another
-    reason (off the wire, a poor fit, base and tip in doubt): stop; ``stale``; ``jump``:
+    Guards (each a :class:`ServoStop`): ``not_finite``; ``uncertain``: the views show too
+    little of the arc (``Seen.short``: the fit matches what it finds, the jaws and the
+    tissue hide the rest), or the centre's or the plane's sigma is over the settings'
+    bounds: a look not to move on, which contradicts nothing (the caller carries on on
+    the model's prediction); ``lost``: the tracker not converged for another reason (off
+    the wire, a fit that does not match, base and tip in doubt): stop; ``stale``; ``jump``:
     the centre or the plane off where the last usable look, moved as the tool moved since,
     puts it (a slip in the jaws, a twin): stop. Units: metres, radians, seconds.
     """
@@ -347,6 +353,9 @@ class DriveServo:
         _transform(seen.pose, "the tracked pose")
         if not math.isfinite(seen.stamp):
             raise ServoStop("not_finite", f"the frame's stamp is {seen.stamp}")
+        if seen.short and not seen.converged:
+            raise ServoStop("uncertain", f"the views show too little of the arc "
+                                         f"({seen.reason})")
         if seen.sigma_position > s.max_sigma_position or seen.sigma_angle > s.max_sigma_angle:
             raise ServoStop("uncertain", f"the circle is uncertain ({seen.sigma_position * 1e3:.2f}"
                                          f" mm, plane {math.degrees(seen.sigma_angle):.2f} deg;"

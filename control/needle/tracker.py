@@ -596,7 +596,9 @@ class NeedleTrack:
     ``held_reason``: the same judgement for a needle whose slide along its own circle the
     closed jaws fix (the plane's orientation, ``Refined.sigma_tilt``, judged in place of
     the largest axis): empty when a step that takes the slide from the grip may move on
-    the circle (centre and plane) of ``pose``.
+    the circle (centre and plane) of ``pose``. ``short``: the refinement's fit matched
+    what it found (its RMS within bounds) but found too little of the arc: a view that
+    hides the needle, not one that contradicts the pose.
     """
 
     pose: np.ndarray
@@ -606,6 +608,7 @@ class NeedleTrack:
     converged: bool
     reason: str
     held_reason: str = ""
+    short: bool = False
 
 
 class NeedleTracker:
@@ -875,7 +878,9 @@ class NeedleTracker:
 
         reason = why_not(ref.sigma_angle, "")
         held_reason = reason and why_not(ref.sigma_tilt, " of the needle's plane")
-        track = NeedleTrack(pose, est, ref, swage, not reason, reason, held_reason)
+        short = (not ref.ok and ref.rms_px <= self.refiner.s.max_rms_px
+                 and est.score >= s.min_score)
+        track = NeedleTrack(pose, est, ref, swage, not reason, reason, held_reason, short)
         if not reason:
             self._side_evidence = max(self._side_evidence, swage) if carried else swage
             self._sided = True

@@ -501,9 +501,11 @@ class NeedleProcedure(CellActions):
         correct until the centre is within ``done_shift`` or two of the look's sigmas.
         Looks stop where the plan hides more than ``servo_shown`` of the arc in the
         tissue, and the drive carries on on the model's prediction; a look that
-        leaves the circle uncertain is not used (the servo never moves on it, nor stops
-        for it: what it has not learnt, it leaves as planned, as open-loop does, and the
-        regrasp's check of the bite follows either). Until the servo has used a look
+        leaves the circle uncertain, or shows too little of the arc (the fit matching
+        what it finds: the jaws and the entering tip hide the rest), is not used (the
+        servo never moves on it, nor stops for it: what it has not learnt, it leaves as
+        planned, as open-loop does, and the regrasp's check of the bite follows
+        either). Until the servo has used a look
         (the approach's may be lost: low over the tissue, across the masked incision),
         a lost track is not used either; once it has, a lost track, a stale frame, a
         jump, or a corrected pose out of reach stops the drive where it is, naming the

@@ -296,13 +296,14 @@ def _drive_servo_seen(**kw) -> tuple[DriveServo, Seen]:
     ({"sigma_position": 0.0004}, "uncertain"),
     ({"sigma_angle": math.radians(2.0)}, "uncertain"),
     ({"converged": False, "reason": "test: off the wire"}, "lost"),
+    ({"converged": False, "reason": "test: 55 % of the arc", "short": True}, "uncertain"),
     ({"stamp": 1.5}, "stale"),
     ({"stamp": math.nan}, "not_finite"),
 ])
 def test_drive_servo_guards_stop_before_anything_is_learnt(kw, cause):
-    """Issue 36, bad input: an uncertain circle (the caller may carry on on the model), a
-    track lost for another reason, a stale or malformed frame each raise their cause and
-    leave the model as it was."""
+    """Issue 36, bad input: an uncertain circle or a look that shows too little of the arc
+    (the caller carries on on the model), a track lost for another reason, a stale or
+    malformed frame each raise their cause and leave the model as it was."""
     servo, seen = _drive_servo_seen(**kw)
     before = servo.correction(30).copy()
     with pytest.raises(ServoStop) as e:
