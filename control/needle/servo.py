@@ -116,7 +116,7 @@ class Seen:
         angle = math.inf if r is None else float(r.sigma_tilt if held else r.sigma_angle)
         return cls(np.asarray(track.pose, dtype=float), float(stamp), not reason, reason,
                    math.inf if r is None else float(r.sigma_position), angle,
-                   bool(getattr(track, "short", False)))
+                   bool(track.short))
 
 
 class ServoStop(NeedleError):
@@ -153,6 +153,22 @@ def _transform(T: np.ndarray, what: str) -> np.ndarray:
         raise ServoStop("not_finite", str(exc)) from None
 
 
+def _check_frame(seen: Seen) -> None:
+    """The guards every servo puts a frame through first: a finite rigid pose and stamp
+    (``not_finite``)."""
+    _transform(seen.pose, "the tracked pose")
+    if not math.isfinite(seen.stamp):
+        raise ServoStop("not_finite", f"the frame's stamp is {seen.stamp}")
+
+
+def _check_age(seen: Seen, now: float, s: ServoSettings) -> None:
+    """``stale``: the frame older than ``max_age`` at time ``now`` (s)."""
+    age = now - seen.stamp
+    if age > s.max_age:
+        raise ServoStop("stale", f"the frame is {age * 1e3:.0f} ms old (bound "
+                                 f"{s.max_age * 1e3:.0f} ms)")
+
+
 def _about(point: np.ndarray, rotvec: np.ndarray, shift: np.ndarray) -> np.ndarray:
     """The rigid motion that turns by ``rotvec`` (rad) about ``point`` (m), then shifts
     by ``shift`` (m); 4x4."""
@@ -187,9 +203,7 @@ class HeldNeedleServo:
 
     def _check(self, seen: Seen, now: float, tool_motion: np.ndarray | None) -> None:
         s = self.s
-        _transform(seen.pose, "the tracked pose")
-        if not math.isfinite(seen.stamp):
-            raise ServoStop("not_finite", f"the frame's stamp is {seen.stamp}")
+        _check_frame(seen)
         if not seen.converged:
             raise ServoStop("lost", f"the tracker has not converged ({seen.reason})")
         if seen.sigma_position > s.max_sigma_position or seen.sigma_angle > s.max_sigma_angle:
@@ -197,10 +211,7 @@ class HeldNeedleServo:
                                          f" mm, {math.degrees(seen.sigma_angle):.2f} deg; "
                                          f"bounds {s.max_sigma_position * 1e3:.2f} mm, "
                                          f"{math.degrees(s.max_sigma_angle):.2f} deg)")
-        age = now - seen.stamp
-        if age > s.max_age:
-            raise ServoStop("stale", f"the frame is {age * 1e3:.0f} ms old (bound "
-                                     f"{s.max_age * 1e3:.0f} ms)")
+        _check_age(seen, now, s)
         if self._last is not None:
             motion = (self._last_delta if tool_motion is None
                       else _transform(tool_motion, "the tool's motion"))
@@ -243,6 +254,10 @@ class HeldNeedleServo:
         self._last_delta = delta
         return ServoCommand(delta, shift, turn, done=False)
 
+
+def _moved_by(applied: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """How far (m, reference frame) rigid motion ``applied`` (4x4) moves ``point`` (3,)."""
+    return applied[:3, :3] @ point + applied[:3, 3] - point
 
 
 def _plane_turn(seen: np.ndarray, goal: np.ndarray) -> np.ndarray:
@@ -340,9 +355,8 @@ class DriveServo:
         motion would carry the corrections, which the model says cancel the wander)."""
         goal = self.goals[k]
         c = goal[:3, 3]
-        d = applied[:3, :3] @ c + applied[:3, 3] - c
         T = goal.copy()
-        T[:3, 3] = c + d - self._theta[:3] + goal[:3, :3] @ self._theta[3:]
+        T[:3, 3] = c + _moved_by(applied, c) - self._theta[:3] + goal[:3, :3] @ self._theta[3:]
         return T
 
     def check(self, seen: Seen, now: float, tool_motion: np.ndarray) -> None:
@@ -350,9 +364,7 @@ class DriveServo:
         ``tool_motion`` (4x4, reference frame, left factor) since the last usable look;
         a :class:`ServoStop` when one trips."""
         s = self.s
-        _transform(seen.pose, "the tracked pose")
-        if not math.isfinite(seen.stamp):
-            raise ServoStop("not_finite", f"the frame's stamp is {seen.stamp}")
+        _check_frame(seen)
         if seen.short and not seen.converged:
             raise ServoStop("uncertain", f"the views show too little of the arc "
                                          f"({seen.reason})")
@@ -363,10 +375,7 @@ class DriveServo:
                                          f"{math.degrees(s.max_sigma_angle):.2f} deg)")
         if not seen.converged:
             raise ServoStop("lost", f"the tracker has not converged ({seen.reason})")
-        age = now - seen.stamp
-        if age > s.max_age:
-            raise ServoStop("stale", f"the frame is {age * 1e3:.0f} ms old (bound "
-                                     f"{s.max_age * 1e3:.0f} ms)")
+        _check_age(seen, now, s)
         if self._last is not None:
             predicted = _transform(tool_motion, "the tool's motion") @ self._last.pose
             off = float(np.linalg.norm(seen.pose[:3, 3] - predicted[:3, 3]))
@@ -386,7 +395,7 @@ class DriveServo:
         self.check(seen, now, tool_motion)
         goal = self.goals[k]
         m = seen.pose[:3, 3] - goal[:3, 3]
-        d = applied[:3, :3] @ goal[:3, 3] + applied[:3, 3] - goal[:3, 3]
+        d = _moved_by(applied, goal[:3, 3])
         # m - d = -e + A_k x
         self._rows.append(np.hstack([-np.eye(3), goal[:3, :3]]))
         self._rhs.append(m - d)

@@ -757,8 +757,8 @@ class NeedleTracker:
         T_b, cov = self._belief
         position = s.position_drift
         D = np.asarray(delta, dtype=float)
-        turn = rotation_angle(D[:3, :3])
         if kinematic and (s.turn_drift or s.travel_drift):
+            turn = rotation_angle(D[:3, :3])
             travel = float(np.linalg.norm(D[:3, :3] @ T_b[:3, 3] + D[:3, 3] - T_b[:3, 3]))
             position = math.hypot(position, s.turn_drift * turn, s.travel_drift * travel)
         elif not kinematic:
@@ -767,10 +767,10 @@ class NeedleTracker:
             # one open-loop motion, so each share adds its share of the variance (a
             # drift per look took the slide past what a step may move on after a
             # servoed drive: 3.5 deg at the regrasp, against 1.1 open-loop)
-            share = math.sqrt(min(1.0, turn / math.pi))
+            share = math.sqrt(min(1.0, rotation_angle(D[:3, :3]) / math.pi))
             slide, tilt = slide * share, tilt * share
         drift = np.array([tilt, tilt, slide] + 3 * [position])
-        self._belief = (np.asarray(delta, dtype=float) @ T_b, cov + np.diag(drift ** 2))
+        self._belief = (D @ T_b, cov + np.diag(drift ** 2))
 
     def update(self, features: Sequence[NeedleFeatures]) -> NeedleTrack:
         """Measurement update on the current images, then the finish, started from the
@@ -857,6 +857,7 @@ class NeedleTracker:
         # the new jaws hid the swage, after +26 DN at the swage; the next update then
         # took the twin)
         doubted = carried and swage <= -max(s.swage_min, self._side_evidence)
+
         def why_not(angle: float, what: str) -> str:
             """Why a step may not move on the track, its orientation's sigma ``angle``
             (rad, ``what`` it measures) judged against the bound; empty when it may."""

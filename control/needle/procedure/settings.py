@@ -73,11 +73,11 @@ class ProcedureSettings:
     (how far off and how turned the tool may be from where an arm reports it; ``None``:
     exact), which widens the tracker's motion prior by each motion's size
     (:class:`.TrackSettings` ``turn_drift``, ``travel_drift``; the error swings round
-    the RCM, ``ARM_LEVER`` away);
-    the drive looks only where the plan leaves at least ``servo_shown`` of the arc out of
-    the tissue: the jaws hide a fifth or so more, and the refinement needs 60 % of what
-    is not hidden by what it knows of; from 0.7 to 0.75 out of the tissue the fit found
-    54-58 % and the tracked centre went 1-3 mm astray on development trials.
+    the RCM, ``ARM_LEVER`` away); ``servo_shown``: the servoed drive looks only where the
+    plan leaves at least this share of the arc out of the tissue: the jaws hide a fifth or
+    so more, and the refinement needs 60 % of what is not hidden by what it knows of;
+    from 0.7 to 0.75 out of the tissue the fit found 54-58 % and the tracked centre went
+    1-3 mm astray on development trials.
     """
 
     depth: float = 0.005

@@ -66,14 +66,20 @@ GRASP_SEEN = 0.0003
 ARM_LEVER = 0.16
 
 
+def _off_at_needle(accuracy: tuple[float, float] | None) -> float:
+    """How far (m) arms of ``accuracy`` (m, rad; ``None``: exact) may put the needle off:
+    their shift and their rotation over ``ARM_LEVER``."""
+    shift, turn = accuracy or (0.0, 0.0)
+    return shift + turn * ARM_LEVER
+
+
 def _drifts(accuracy: tuple[float, float] | None) -> dict[str, float]:
     """The tracker's motion-size drifts for arms of ``accuracy`` (m, rad): a turn of the
-    gripper swings the arm's error at the needle (its shift and its rotation over the
-    lever) round; a travel is off by the rotation error's share."""
+    gripper swings the arm's error at the needle round; a travel is off by the rotation
+    error's share."""
     if accuracy is None:
         return {}
-    shift, turn = accuracy
-    return {"turn_drift": shift + turn * ARM_LEVER, "travel_drift": turn}
+    return {"turn_drift": _off_at_needle(accuracy), "travel_drift": accuracy[1]}
 
 
 class NeedleProcedure(CellActions):
@@ -505,15 +511,14 @@ class NeedleProcedure(CellActions):
         what it finds: the jaws and the entering tip hide the rest), is not used (the
         servo never moves on it, nor stops for it: what it has not learnt, it leaves as
         planned, as open-loop does, and the regrasp's check of the bite follows
-        either). Until the servo has used a look
-        (the approach's may be lost: low over the tissue, across the masked incision),
-        a lost track is not used either; once it has, a lost track, a stale frame, a
-        jump, or a corrected pose out of reach stops the drive where it is, naming the
-        cause. Returns the
-        servo's figures (none open-loop) and the needle's motion since the tracker last
-        looked (4x4, reference frame, left factor; the next look's): the arm's reported
-        motion open-loop, the servo model's prediction servoed (the corrections since
-        cancel the wander the reported motion does not show)."""
+        either). Until the servo has used a look (the approach's may be lost: low over
+        the tissue, across the masked incision), a lost track is not used either; once it
+        has, a lost track, a stale frame, a jump, or a corrected pose out of reach stops
+        the drive where it is, naming the cause. Returns the servo's figures (none
+        open-loop) and the needle's motion since the tracker last looked (4x4, reference
+        frame, left factor; the next look's): the arm's reported motion open-loop, the
+        servo model's prediction servoed (the corrections since cancel the wander the
+        reported motion does not show)."""
         s = self.s
         n = len(drive.G_PT)
         if s.drive_servo is None:
@@ -528,10 +533,9 @@ class NeedleProcedure(CellActions):
         # accuracy says, and the seen grasp's own error besides (exact arms: the looks
         # only average the grasp's; a 3 mm prior there chased the looks' biases, 77.5 %
         # against open-loop's 85 % on development seeds 200-239)
-        shift, turn = s.arm_accuracy or (0.0, 0.0)
         servo = DriveServo(np.concatenate([(approach @ invert(drive.G_PT[0]) @ goals[0])[None],
                                            goals]), s.drive_servo,
-                           prior_shift=math.hypot(shift + turn * ARM_LEVER, GRASP_SEEN))
+                           prior_shift=math.hypot(_off_at_needle(s.arm_accuracy), GRASP_SEEN))
         # the tip is in the tissue from the first poses on: the tracker must not take the
         # part under the surface for missing wire
         self.tracker.set_occluder(TissuePlane(self.incision.mean(axis=0), self.normal))
@@ -551,9 +555,15 @@ class NeedleProcedure(CellActions):
         def name(k: int) -> str:
             return "the approach" if k == 0 else f"drive pose {k} of {n}"
 
+        def model_motion(k: int, D: np.ndarray, since: tuple[int, np.ndarray]) -> np.ndarray:
+            """The needle's motion from look ``since`` (pose, correction) to pose ``k``
+            with correction ``D``, as the servo's model predicts it."""
+            return servo.predicted(k, D) @ invert(servo.predicted(*since))
+
         # where the views still see enough of the arc to fix its circle: out of the
         # tissue, by the plan
-        shown = [1.0 - len(self._arc_under(g)[2]) / 721 for g in servo.goals]
+        shown = [1.0 - len(under) / len(pts)
+                 for _, pts, under in map(self._arc_under, servo.goals)]
         for k in range(n + 1):
             D = servo.correction(k)
             if k:
@@ -565,16 +575,15 @@ class NeedleProcedure(CellActions):
                 # the needle's motion since the last look: as the servo's model of the
                 # arm's error predicts it, once it has one
                 motion = (now @ invert(at_frame) if looked is None
-                          else servo.predicted(k, D) @ invert(servo.predicted(*looked)))
+                          else model_motion(k, D, looked))
                 tr = self._look(motion, kinematic=looked is None)
                 at_frame, looked = now, (k, D)
                 stamp = time.monotonic()
                 seen = Seen.from_track(tr, stamp, held=True)
                 try:
-                    errors.append(servo.update(k, seen,
-                                               stamp, motion if used is None else
-                                               servo.predicted(k, D) @ invert(
-                                                   servo.predicted(*used)), D))
+                    errors.append(servo.update(
+                        k, seen, stamp, motion if used is None else model_motion(k, D, used),
+                        D))
                 except ServoStop as exc:
                     if exc.cause == "uncertain":
                         # not used; the model carries on (a constant shift only, while
@@ -606,7 +615,7 @@ class NeedleProcedure(CellActions):
                 "servo_correction_mm": round(float(np.linalg.norm(
                     servo.correction(n)[:3, 3])) * 1e3, 3)}, (
                         self.cell.gripper_pose(arm) @ invert(at_frame) if looked is None
-                        else servo.predicted(n, D) @ invert(servo.predicted(*looked)))
+                        else model_motion(n, D, looked))
 
     def _arc_under(self, T_N: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:func:`_arc_under` on this procedure's tissue surface."""

@@ -211,11 +211,12 @@ def test_a_tracker_answer_becomes_a_seen_frame():
     from types import SimpleNamespace
 
     refined = SimpleNamespace(sigma_position=0.0001, sigma_angle=0.01)
-    track = SimpleNamespace(pose=np.eye(4), refined=refined, converged=True, reason="")
+    track = SimpleNamespace(pose=np.eye(4), refined=refined, converged=True, reason="",
+                            short=False)
     seen = Seen.from_track(track, 2.5)
     assert (seen.stamp, seen.sigma_position, seen.sigma_angle) == (2.5, 0.0001, 0.01)
     bare = Seen.from_track(SimpleNamespace(pose=np.eye(4), refined=None, converged=True,
-                                           reason=""), 2.5)
+                                           reason="", short=False), 2.5)
     assert math.isinf(bare.sigma_position)
     with pytest.raises(ServoStop, match="uncertain"):
         HeldNeedleServo(make_transform(None, [0.0, 0.0, 0.001])).update(bare, 2.5)
@@ -350,6 +351,7 @@ class _Track:
         self.pose = np.eye(4)
         self.converged = not reason
         self.reason, self.held_reason = reason, held_reason
+        self.short = False
         self.refined = Refined(np.eye(4), 0.1, 0.9, 0.0001, math.radians(2.6), True,
                                sigma_slide=math.radians(2.6), sigma_tilt=math.radians(0.1))
 
