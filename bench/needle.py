@@ -158,12 +158,14 @@ def _arm_error_json(arm_error: tuple[float, float] | None) -> dict[str, float] |
 
 
 def run_trial(seed: int, arm_error: tuple[float, float] | None = None,
-              servo: bool = False, difficulty: float = 1.0) -> dict[str, Any]:
+              servo: bool = False, difficulty: float = 1.0,
+              stream: bool = False) -> dict[str, Any]:
     """One trial: the procedure on ``trial_cell(seed)`` at ``difficulty`` (0..2,
     ``needle_trials.MAX_DIFFICULTY``), each arm with a kinematic error of ``arm_error``
     (mm, deg) when given, the drive servoed on the tracked needle with ``servo``
-    (``ProcedureSettings.drive_servo``); its record (JSON-able; ``difficulty`` in it
-    unless the default)."""
+    (``ProcedureSettings.drive_servo``), from a tracking task that tracks every frame
+    while the arm moves with ``stream`` as well (:mod:`oralnav.realtime.needle_tracking`);
+    its record (JSON-able; ``difficulty`` in it unless the default)."""
     from oralnav.config.rig import trial_rig
     from oralnav.control.needle.procedure import (
         NeedleProcedure,
@@ -172,6 +174,7 @@ def run_trial(seed: int, arm_error: tuple[float, float] | None = None,
         port_pair,
     )
     from oralnav.control.needle.servo import ServoSettings
+    from oralnav.realtime.needle_tracking import start_tracking
     from oralnav.sim.world.needle_trials import CT1, trial_cell
     from oralnav.sim.world.needle_truth import check_truth
 
@@ -187,12 +190,14 @@ def run_trial(seed: int, arm_error: tuple[float, float] | None = None,
     settings = ProcedureSettings(drive_servo=ServoSettings() if servo else None,
                                  arm_accuracy=error)
     proc = NeedleProcedure(cell, info.incision, info.surface_normal, settings,
-                           surface_outline=info.surface_outline, truth_check=check_truth)
+                           surface_outline=info.surface_outline, truth_check=check_truth,
+                           feed=start_tracking if servo and stream else None)
     results = proc.run_all()
     steps, failure = first_failure(results)
     return {"seed": seed, "steps": steps, "failure": failure,
             **({} if arm_error is None else {"arm_error": _arm_error_json(arm_error)}),
             **({"servo": True} if servo else {}),
+            **({"stream": True} if servo and stream else {}),
             **({} if difficulty == 1.0 else {"difficulty": float(difficulty)}),
             "seconds": round(time.perf_counter() - t0, 2),
             "results": [r.to_json() for r in results]}
@@ -213,7 +218,7 @@ def classify(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def _kept_trials(store: Path | None, seeds: Sequence[int],
                  arm_error: tuple[float, float] | None = None,
-                 servo: bool = False, difficulty: float = 1.0
+                 servo: bool = False, difficulty: float = 1.0, stream: bool = False
                  ) -> dict[int, dict[str, Any]]:
     """The records of ``seeds`` already in ``store`` (one ``SEED.json`` each) run with
     ``arm_error``; a file that does not read back (a write cut short), or a record of
@@ -229,16 +234,44 @@ def _kept_trials(store: Path | None, seeds: Sequence[int],
         if (isinstance(rec, dict) and rec.get("seed") == s
                 and rec.get("arm_error") == _arm_error_json(arm_error)
                 and rec.get("servo", False) == servo
+                and rec.get("stream", False) == (servo and stream)
                 and rec.get("difficulty", 1.0) == difficulty):
             kept[s] = rec
     return kept
+
+
+def stream_figures(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The streamed servo's figures over ``records`` (their ND figures): commands given,
+    the per-drive command rate (Hz: p50, min), every command's time from its frame's
+    arrival (ms: p50, p99, max), every tracked frame's work (features and tracking, ms:
+    p50, p99) and the rate that work allows (``tracking_capacity_hz``: 1000 / its p50),
+    which a camera faster than the simulator's renderer would see."""
+    rates, latency, work = [], [], []
+    for r in records:
+        for step in r["results"]:
+            f = step.get("figures", {})
+            if step["step"] == "ND" and "servo_latency_ms" in f:
+                latency += f["servo_latency_ms"]
+                work += f["servo_frame_work_ms"]
+                if f.get("servo_rate_hz") is not None:
+                    rates.append(f["servo_rate_hz"])
+
+    def pct(v: list[float], *qs: float) -> dict[str, float | None]:
+        return {f"p{q:g}": (round(float(np.percentile(v, q)), 1) if v else None) for q in qs}
+
+    work_p = pct(work, 50, 99)
+    return {"commands": len(latency), "drives": len(rates),
+            "rate_hz": {**pct(rates, 50), "min": min(rates) if rates else None},
+            "latency_ms": {**pct(latency, 50, 99), "max": max(latency) if latency else None},
+            "frame_work_ms": work_p,
+            "tracking_capacity_hz": (round(1e3 / work_p["p50"], 1) if work_p["p50"] else None)}
 
 
 def run(trials: int, seed: int, workers: int | None = None,
         progress: bool = True, scheduler: str | None = None,
         store: Path | None = None,
         arm_error: tuple[float, float] | None = None, servo: bool = False,
-        difficulty: float = 1.0) -> dict[str, Any]:
+        difficulty: float = 1.0, stream: bool = False) -> dict[str, Any]:
     """The Monte Carlo over ``trials`` seeds from ``seed``; the summary document. The
     trials run on the engine ``scheduler`` names (``bench/executor.py``: by default a
     local process pool of ``workers``; a trial is a pure function of its seed).
@@ -246,7 +279,9 @@ def run(trials: int, seed: int, workers: int | None = None,
     read back from on the next run, so an interrupted Monte Carlo resumes where it
     stopped (the caller keeps it to one commit: a record is the code's as much as the
     seed's). ``arm_error``: each arm's kinematic error (mm, deg), ``servo``: the drive
-    servoed, ``difficulty``: the trials' (0..2), as :func:`run_trial`'s."""
+    servoed, ``difficulty``: the trials' (0..2), ``stream``: the servo fed by a tracking
+    task, as :func:`run_trial`'s; streamed, ``stream`` in the document sums up the servo's
+    rate and latency (:func:`stream_figures`)."""
     from oralnav.bench.executor import TrialRunner
     from oralnav.config.loader import atomic_write_text
     from oralnav.control.needle.procedure import step_rates
@@ -256,7 +291,8 @@ def run(trials: int, seed: int, workers: int | None = None,
     seeds = list(range(seed, seed + trials))
     arm_error = arm_error_checked(arm_error)
     difficulty = difficulty_checked(difficulty)
-    kept = _kept_trials(store, seeds, arm_error, servo, difficulty)
+    stream = servo and stream
+    kept = _kept_trials(store, seeds, arm_error, servo, difficulty, stream)
     todo = [s for s in seeds if s not in kept]
     if scheduler is None:
         workers = max(1, min(workers or os.cpu_count() or 1, max(len(todo), 1)))
@@ -286,6 +322,7 @@ def run(trials: int, seed: int, workers: int | None = None,
                   file=sys.stderr, flush=True)
         options = {**({} if arm_error is None else {"arm_error": arm_error}),
                    **({"servo": True} if servo else {}),
+                   **({"stream": True} if stream else {}),
                    **({} if difficulty == 1.0 else {"difficulty": difficulty})}
         trial = functools.partial(run_trial, **options) if options else run_trial
         fresh = runner.map(trial, todo, on_result=report) if todo else []
@@ -299,6 +336,7 @@ def run(trials: int, seed: int, workers: int | None = None,
             "overall_interval": list(wilson(succeeded, len(records))),
             "split": seed_split(seeds[0], seeds[-1]),
             "arm_error": _arm_error_json(arm_error), "servo": servo,
+            **({"stream": stream_figures(records)} if stream else {}),
             "difficulty": difficulty,
             "steps": rates["steps"], "individual": rates["individual"],
             "failures": classify(records), "failure_causes": dict(causes),
@@ -430,7 +468,7 @@ def main(out: Path, quick: bool = False, trials: int | None = None, seed: int = 
          workers: int | None = None, scheduler: str | None = None,
          validation: bool = False,
          arm_error: tuple[float, float] | None = None, servo: bool = False,
-         difficulty: Sequence[float] = (1.0,)) -> dict[str, Any]:
+         difficulty: Sequence[float] = (1.0,), stream: bool = False) -> dict[str, Any]:
     """Run the Monte Carlo (``quick``: 10 trials, ``validation``: ``VALIDATION_TRIALS``
     from ``VALIDATION_SEED``, else 200 unless ``trials`` is given; ``arm_error``: each
     arm's kinematic error, mm and deg; ``servo``: the drive servoed; ``difficulty``: the
@@ -446,13 +484,14 @@ def main(out: Path, quick: bool = False, trials: int | None = None, seed: int = 
     n = trials if trials is not None else (
         10 if quick else VALIDATION_TRIALS if validation else 200)
     doc = run(n, seed, workers, scheduler=scheduler, arm_error=arm_error, servo=servo,
-              difficulty=difficulty[0])
+              difficulty=difficulty[0], stream=stream)
     out.mkdir(parents=True, exist_ok=True)
     (out / "needle.json").write_text(json.dumps(doc, indent=1) + "\n")
     lo, hi = doc["overall_interval"]
     err = ("" if arm_error is None
            else f" with {arm_error[0]:g} mm / {arm_error[1]:g} deg arm errors")
     err += ", the drive servoed" if servo else ""
+    err += " from a tracking task" if servo and stream else ""
     err += "" if doc["difficulty"] == 1.0 else f", difficulty {doc['difficulty']:g}"
     print(f"needle: {doc['trials']} trials on {doc['split']} seeds {seed}-{seed + n - 1}{err}, "
           f"overall {100 * doc['overall']:.1f} % ({100 * CONFIDENCE:.0f} % interval "
@@ -463,6 +502,13 @@ def main(out: Path, quick: bool = False, trials: int | None = None, seed: int = 
     for f in doc["failures"]:
         print(f"  {f['count']:4d} x {f['step']} {f['cause']}: {f['example'][:120]}",
               file=sys.stderr)
+    if "stream" in doc:
+        st = doc["stream"]
+        print(f"  streamed servo: {st['commands']} commands, rate p50 "
+              f"{st['rate_hz']['p50']} Hz; capture to command p50 {st['latency_ms']['p50']} "
+              f"ms, p99 {st['latency_ms']['p99']} ms; a frame's work p50 "
+              f"{st['frame_work_ms']['p50']} ms (at most {st['tracking_capacity_hz']} Hz "
+              f"from a camera)", file=sys.stderr)
     return doc
 
 

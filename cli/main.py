@@ -17,7 +17,7 @@
     oralnav replay FILE.mcap [--json]
     oralnav bench navigation|control|calibration|planning [--quick] --out DIR
     oralnav bench needle [--trials N] [--seed S | --validation] [--workers W] [--arm-error MM DEG]
-                         [--servo] [--scheduler ADDRESS] [--quick] [--tracking]
+                         [--servo] [--stream] [--scheduler ADDRESS] [--quick] [--tracking]
                          --out DIR [--json]
     oralnav bench faults [--quick] --out DIR [--json]
     oralnav bench busy-demo --out DIR [--runs N] [--busy N] [--json]
@@ -453,7 +453,7 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(f"--difficulty: {exc}") from None
     sweeping = len(levels) > 1
-    if sweeping and (args.servo or args.tracking):
+    if sweeping and (args.servo or args.stream or args.tracking):
         raise UsageError("a --difficulty sweep runs each difficulty open-loop and servoed, "
                          "and charts no tracking: give it without --servo or --tracking")
     from oralnav.bench.executor import SchedulerError
@@ -462,7 +462,8 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
         doc = needle.main(Path(args.out), quick=args.quick, trials=args.trials,
                           seed=args.seed or 0, workers=args.workers,
                           scheduler=args.scheduler, validation=args.validation,
-                          arm_error=arm_error, servo=args.servo, difficulty=levels)
+                          arm_error=arm_error, servo=args.servo or args.stream,
+                          difficulty=levels, stream=args.stream)
     except SchedulerError as exc:
         raise UsageError(str(exc)) from None
     if sweeping:
@@ -751,6 +752,10 @@ def build_parser() -> argparse.ArgumentParser:
     nd.add_argument("--servo", action="store_true",
                     help="servo the drive on the needle tracked during it (the procedure's "
                          "drive_servo; default: open-loop, as planned)")
+    nd.add_argument("--stream", action="store_true",
+                    help="servo the drive from a tracking task that tracks every frame "
+                         "while the arm moves, correcting on each (implies --servo; "
+                         "needle.json's 'stream' gives the rate and latency)")
     nd.add_argument("--difficulty", type=float, nargs="+", default=None, metavar="D",
                     help="the trials' difficulty, 0..2 (default 1: the usual trials; up "
                          "to 1 it scales the imaging nuisances, above 1 it also tilts the "

@@ -639,6 +639,8 @@ class NeedleTracker:
         # cannot turn end for end, so only as strong a sight of the thread at the other
         # end overturns it
         self._side_evidence = 0.0
+        # the jaws hold the needle and its sides are decided: no twin contest (fix_side)
+        self._side_fixed = False
         # what is known of the pose with its covariance (local parameters): the last
         # refined pose, moved and widened by each known motion since; it outlives an
         # update that fitted nothing (the jaws and the tissue hid too much), which
@@ -693,6 +695,15 @@ class NeedleTracker:
         """The tissue plane in use (``None``: nothing hides the needle)."""
         return self.filter.occluder
 
+    def fix_side(self, fixed: bool) -> None:
+        """While ``fixed``, a track whose base and tip are decided keeps them without the
+        twin contest (a refit of the other twin, slid both ways: three times an update's
+        fits when the jaws hide the thread): for a needle held in closed jaws, which
+        cannot turn it end for end, so the contest could only be the tracker's own error
+        (a servo's jump guard catches a flip it would make). A track not yet decided is
+        still contested."""
+        self._side_fixed = bool(fixed)
+
     def set_occluder(self, plane: TissuePlane | None) -> None:
         """The tissue's surface (reference frame) hides the part of the needle under it,
         from the next update (or initialisation) on, in the filter's score and the
@@ -721,7 +732,7 @@ class NeedleTracker:
         return self._finish(features, est, starts)
 
     def predict(self, delta: np.ndarray | None = None, *, trusted: bool = True,
-                kinematic: bool = True) -> None:
+                kinematic: bool = True, split: bool = False) -> None:
         """Motion update: :meth:`NeedleFilter.predict`; the last refined pose moves with
         the gripper too (it is the refinement's first start next update). ``delta``
         known (a held needle's gripper motion, or the identity for a needle that stays):
@@ -732,7 +743,10 @@ class NeedleTracker:
         an arm's reported motion but the needle's own, predicted from what was seen (a
         servo's model of the arm's error): ``turn_drift`` and ``travel_drift`` do not
         apply, and the slide and tilt drift by the motion's share of a half turn (a servo
-        looks many times along what open-loop moves in one)."""
+        looks many times along what open-loop moves in one). ``split``: an arm's reported
+        motion (the kinematic drifts apply) that is one of many small ones a tracking task
+        looks at frame by frame, so the slide and tilt drift by its share as for
+        ``kinematic=False``."""
         self.filter.predict(delta)
         self._prior_full = trusted
         still = delta is not None and np.allclose(delta, np.eye(4), rtol=0.0, atol=1e-12)
@@ -761,7 +775,7 @@ class NeedleTracker:
             turn = rotation_angle(D[:3, :3])
             travel = float(np.linalg.norm(D[:3, :3] @ T_b[:3, 3] + D[:3, 3] - T_b[:3, 3]))
             position = math.hypot(position, s.turn_drift * turn, s.travel_drift * travel)
-        elif not kinematic:
+        if not kinematic or split:
             # a servo splits one motion into many small ones, each looked at: the wire
             # slips in the jaws (and tilts in them) as much over the whole turn as over
             # one open-loop motion, so each share adds its share of the variance (a
@@ -807,8 +821,9 @@ class NeedleTracker:
         carried = (self._sided and self._prior is not None
                    and rotation_angle(self._prior[:3, :3].T @ pose[:3, :3]) < 0.5 * math.pi)
         initial = self.last is None and self._prior is None     # initialize()'s finish
-        if (ref.ok and s.require_swage and (swage < s.swage_min or initial)) \
-                or (not carried and swage < -s.swage_min):
+        if not (carried and self._side_fixed) and (
+                (ref.ok and s.require_swage and (swage < s.swage_min or initial))
+                or (not carried and swage < -s.swage_min)):
             # the thread does not confirm this twin, or the track starts afresh: the
             # other, fitted again (with its own tip as the end that holds the slide) and
             # from it slid both ways (the twin of a pose slid onto the thread is slid as

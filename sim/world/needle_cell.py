@@ -472,16 +472,27 @@ class NeedleCell:
         """Render every camera of the current state (mono8, by camera name). Each call is
         a new frame: a new noise draw. The frame, with its ground truth, is kept as
         :attr:`last_frame`."""
+        return self.expose()()
+
+    def expose(self) -> Callable[[], dict[str, np.ndarray]]:
+        """The next frame's exposure: the state now (a new frame number), and a function
+        that renders it as :meth:`images` does. The state is copied here, so the cell may
+        move while another thread renders (a tracking task's capture: the arm does not
+        wait for the renderer, as it would not wait for a camera)."""
         wire = self._nd.needle.wire_diameter
         openings = {n: (self._open_gap[n] if not self._closed[n]
                         else wire if n in self._grasp else 0.0) for n in self._grippers}
         # copies: the frame keeps its poses, the cell's state must not alias them
         poses = {self._nd.name: self._T_needle.copy(),
                  **{n: T.copy() for n, T in self._T_tool.items()}}
-        frame = self._renderer.render(poses=poses, frame=self._frame, openings=openings)
+        number = self._frame
         self._frame += 1
-        self.last_frame = frame
-        return dict(frame.images)
+
+        def render() -> dict[str, np.ndarray]:
+            frame = self._renderer.render(poses=poses, frame=number, openings=openings)
+            self.last_frame = frame
+            return dict(frame.images)
+        return render
 
     def gripper_pose(self, name: str) -> np.ndarray:
         """The robot's reported ``T_ref_tool`` (4x4, m): ``kinematic_error[name] @`` the

@@ -44,7 +44,11 @@ class CellActions:
 
     # -- tracking -------------------------------------------------------------------------
     def _features(self) -> list[NeedleFeatures]:
-        imgs = self.cell.images()
+        """The cell's views now, reduced to what the tracker reads."""
+        return self._features_of(self.cell.images())
+
+    def _features_of(self, imgs: dict[str, np.ndarray]) -> list[NeedleFeatures]:
+        """``imgs`` (by camera name) reduced to what the tracker reads."""
         return [feature_maps(imgs[cam.name], w, ignore=m)
                 for cam, w, m in zip(self.cams, self._wire_px, self._masks, strict=True)]
 

@@ -77,7 +77,9 @@ class ProcedureSettings:
     plan leaves at least this share of the arc out of the tissue: the jaws hide a fifth or
     so more, and the refinement needs 60 % of what is not hidden by what it knows of;
     from 0.7 to 0.75 out of the tissue the fit found 54-58 % and the tracked centre went
-    1-3 mm astray on development trials.
+    1-3 mm astray on development trials. ``stream_timeout`` (s): a drive servoed from a
+    tracking task (the procedure's ``feed``) stops when no newer tracked frame comes
+    within this long (a stalled stream or tracker).
     """
 
     depth: float = 0.005
@@ -134,6 +136,7 @@ class ProcedureSettings:
     servo_final: int = 6
     arm_accuracy: tuple[float, float] | None = None
     servo_shown: float = 0.8
+    stream_timeout: float = 0.5
     # jaws that close along y_T hold the wire along x_T (w1 = +-pi/2); then the needle's
     # drive turn is mostly a roll about the gripper axis only if the shaft lies near the
     # needle's axis, close to the tissue plane: the elevation floor is relaxed and the
@@ -160,7 +163,7 @@ class ProcedureSettings:
                      "regrasp_tip_margin", "depth_window", "placement_tolerance",
                      "swage_clearance", "pull_lift", "pull_tolerance", "follow_ratio",
                      "carry_clearance", "reach_margin", "strict_view_angle",
-                     "strict_visible"):
+                     "strict_visible", "stream_timeout"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise NeedleError(f"needle procedure: {name} must be >= 0, got {v}")

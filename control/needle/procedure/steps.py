@@ -5,8 +5,10 @@ rad."""
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from typing import Any
 
 import cv2
@@ -15,6 +17,7 @@ import numpy as np
 from oralnav.control.errors import NeedleError, StepOrderError
 from oralnav.control.geometry import invert, rotation_angle
 from oralnav.control.needle.drive import Drive, SutureGeometry, pull_poses
+from oralnav.control.needle.features import NeedleFeatures
 from oralnav.control.needle.grasp import (
     GraspChoice,
     SurfaceGrasp,
@@ -26,6 +29,7 @@ from oralnav.control.needle.grasp import (
 )
 from oralnav.control.needle.procedure.actions import CellActions
 from oralnav.control.needle.procedure.cell import NeedleCellPort
+from oralnav.control.needle.procedure.feed import FeedFactory
 from oralnav.control.needle.procedure.planning import (
     _arc_under,
     _driver_choice,
@@ -64,6 +68,10 @@ GRASP_SEEN = 0.0003
 #: How far (m) a gripper works from its arm's RCM, at most: the lever by which the arm's
 #: rotation error moves the needle (the trial cells' ports lie 100-160 mm from the pad).
 ARM_LEVER = 0.16
+#: How many commands a streamed frame may be behind the arm: the tracking task captures
+#: the next frame while it tracks the last, so the newest frame the step takes was
+#: captured up to two commands before the one it answers.
+STREAM_LAG = 2
 
 
 def _off_at_needle(accuracy: tuple[float, float] | None) -> float:
@@ -82,6 +90,60 @@ def _drifts(accuracy: tuple[float, float] | None) -> dict[str, float]:
     return {"turn_drift": _off_at_needle(accuracy), "travel_drift": accuracy[1]}
 
 
+def _pose_name(k: int, n: int) -> str:
+    """Drive pose ``k`` of ``n`` as a message names it (0: the approach)."""
+    return "the approach" if k == 0 else f"drive pose {k} of {n}"
+
+
+class _ServoRun:
+    """A servoed drive's state between looks: the :class:`DriveServo`, the reported tool
+    at the tracker's last look (``at_frame``), the last look (``looked``) and the last
+    one the servo used (``used``), each ``(drive pose, applied correction)``, and the
+    tallies; :meth:`take` applies the guards' rules to one look, whichever way the looks
+    come (stopped to look, or streamed)."""
+
+    def __init__(self, servo: DriveServo, at_frame: np.ndarray) -> None:
+        self.servo = servo
+        self.at_frame = at_frame
+        self.looked: tuple[int, np.ndarray] | None = None
+        self.used: tuple[int, np.ndarray] | None = None
+        self.errors: list[float] = []
+        self.blind = self.unused = 0
+
+    def motion_to(self, k: int, D: np.ndarray, tool: np.ndarray,
+                  since: tuple[int, np.ndarray] | None) -> np.ndarray:
+        """The needle's motion to pose ``k`` with correction ``D`` (the reported tool then
+        ``tool``) from look ``since``: as the servo's model predicts it, or, before any
+        look, the reported tool's motion since :attr:`at_frame`."""
+        if since is None:
+            return tool @ invert(self.at_frame)
+        return self.servo.predicted(k, D) @ invert(self.servo.predicted(*since))
+
+    def take(self, k: int, seen: Seen, now: float, tool: np.ndarray, D: np.ndarray,
+             where: str) -> bool:
+        """Give the servo ``seen``, a look at pose ``k`` with correction ``D`` (the
+        reported tool ``tool``), at time ``now`` (s). False where the look is not used:
+        uncertain (the model carries on: a constant shift only, while its looks have
+        spanned little of the turn), or lost before the servo has used any (nothing it
+        commands rests on it; the arm goes on as planned until a look it can use). Any
+        other stop of the servo, and a lost track once it has started, fails the step
+        (``servo_<cause>``, at ``where``)."""
+        # the jump guard's motion: since the last look used (none before the first)
+        motion = self.motion_to(k, D, tool, self.used)
+        try:
+            self.errors.append(self.servo.update(k, seen, now, motion, D))
+        except ServoStop as exc:
+            if exc.cause == "uncertain":
+                self.blind += 1
+                return False
+            if self.used is None and exc.cause == "lost":
+                self.unused += 1
+                return False
+            raise StepFailed(f"servo_{exc.cause}", f"{where}: {exc.detail}") from None
+        self.used = (k, D)
+        return True
+
+
 class NeedleProcedure(CellActions):
     """The five steps on one cell (see :mod:`oralnav.control.needle.procedure`).
 
@@ -93,7 +155,12 @@ class NeedleProcedure(CellActions):
     thin-feature measurement finds a wire darker than what lies behind it).
     ``arms``: the two grippers to use (default: the cell's). ``truth_check``, optional:
     checks each step's result against a ground truth the procedure does not see (the
-    simulator's; :data:`StepCheck`), where the caller has one. The steps run in order, each
+    simulator's; :data:`StepCheck`), where the caller has one. ``feed``, optional: starts
+    a tracking task (:data:`~oralnav.control.needle.procedure.feed.FeedFactory`, the
+    realtime layer's :func:`~oralnav.realtime.needle_tracking.start_tracking`); with it a
+    servoed drive (``settings.drive_servo``) tracks every frame while the arm moves and
+    corrects at the tracker's rate where the views show the arc, instead of stopping to
+    look every ``servo_every`` poses. The steps run in order, each
     once: :meth:`run` refuses a step out of turn (:class:`~oralnav.control.errors.StepOrderError`).
     """
 
@@ -101,9 +168,11 @@ class NeedleProcedure(CellActions):
                  settings: ProcedureSettings | None = None,
                  arms: Sequence[str] | None = None,
                  surface_outline: np.ndarray | None = None,
-                 truth_check: StepCheck | None = None) -> None:
+                 truth_check: StepCheck | None = None,
+                 feed: FeedFactory | None = None) -> None:
         self.cell = cell
         self.truth_check = truth_check
+        self.feed = feed
         self.s = s = settings or ProcedureSettings()
         inc = np.asarray(incision, dtype=float)
         n = np.asarray(surface_normal, dtype=float).reshape(3)
@@ -533,17 +602,20 @@ class NeedleProcedure(CellActions):
         # accuracy says, and the seen grasp's own error besides (exact arms: the looks
         # only average the grasp's; a 3 mm prior there chased the looks' biases, 77.5 %
         # against open-loop's 85 % on development seeds 200-239)
-        servo = DriveServo(np.concatenate([(approach @ invert(drive.G_PT[0]) @ goals[0])[None],
-                                           goals]), s.drive_servo,
-                           prior_shift=math.hypot(_off_at_needle(s.arm_accuracy), GRASP_SEEN))
+        # streamed, each frame carries the state the step had commanded when it was
+        # captured, which the model takes it at: its age delays the correction but does
+        # not falsify it, so the age bound is the stream's own (a frame more than
+        # STREAM_LAG commands behind is stale)
+        settings = (s.drive_servo if self.feed is None
+                    else replace(s.drive_servo, max_age=s.stream_timeout))
+        run = _ServoRun(DriveServo(
+            np.concatenate([(approach @ invert(drive.G_PT[0]) @ goals[0])[None], goals]),
+            settings, prior_shift=math.hypot(_off_at_needle(s.arm_accuracy), GRASP_SEEN)),
+            self.cell.gripper_pose(arm))
+        servo = run.servo
         # the tip is in the tissue from the first poses on: the tracker must not take the
         # part under the surface for missing wire
         self.tracker.set_occluder(TissuePlane(self.incision.mean(axis=0), self.normal))
-        at_frame = self.cell.gripper_pose(arm)   # the reported tool at the last look
-        used = None                     # (k, applied correction) of the last look used
-        looked = None                   # ... of the tracker's last look
-        errors: list[float] = []
-        blind = unused = 0
 
         def go(T: np.ndarray, what: str) -> None:
             ok, why = self._reach(arm, [T], 0.0)
@@ -552,70 +624,140 @@ class NeedleProcedure(CellActions):
                                                  f"({why})")
             self._move(arm, T, what)
 
-        def name(k: int) -> str:
-            return "the approach" if k == 0 else f"drive pose {k} of {n}"
-
-        def model_motion(k: int, D: np.ndarray, since: tuple[int, np.ndarray]) -> np.ndarray:
-            """The needle's motion from look ``since`` (pose, correction) to pose ``k``
-            with correction ``D``, as the servo's model predicts it."""
-            return servo.predicted(k, D) @ invert(servo.predicted(*since))
-
         # where the views still see enough of the arc to fix its circle: out of the
         # tissue, by the plan
         shown = [1.0 - len(under) / len(pts)
                  for _, pts, under in map(self._arc_under, servo.goals)]
-        for k in range(n + 1):
+        start, streamed = 0, {}
+        if self.feed is not None:
+            # the poses from the approach on while the arc shows, streamed: corrected on
+            # every tracked frame (the rest as below, on the model and a final look)
+            guided = next((k for k, v in enumerate(shown) if v < s.servo_shown), n + 1)
+            start, streamed = self._drive_streamed(arm, run, poses, min(guided, n), go)
+        D = np.eye(4)
+        for k in range(start, n + 1):
             D = servo.correction(k)
             if k:
-                go(D @ poses[k], name(k))
+                go(D @ poses[k], _pose_name(k, n))
             if (k % s.servo_every and k < n) or shown[k] < s.servo_shown:
                 continue
             for attempt in range(1 + (s.servo_final if k == n else 0)):
                 now = self.cell.gripper_pose(arm)
                 # the needle's motion since the last look: as the servo's model of the
                 # arm's error predicts it, once it has one
-                motion = (now @ invert(at_frame) if looked is None
-                          else model_motion(k, D, looked))
-                tr = self._look(motion, kinematic=looked is None)
-                at_frame, looked = now, (k, D)
+                motion = run.motion_to(k, D, now, run.looked)
+                tr = self._look(motion, kinematic=run.looked is None)
+                run.at_frame, run.looked = now, (k, D)
                 stamp = time.monotonic()
                 seen = Seen.from_track(tr, stamp, held=True)
-                try:
-                    errors.append(servo.update(
-                        k, seen, stamp, motion if used is None else model_motion(k, D, used),
-                        D))
-                except ServoStop as exc:
-                    if exc.cause == "uncertain":
-                        # not used; the model carries on (a constant shift only, while
-                        # its looks have spanned little of the turn)
-                        blind += 1
-                        break
-                    if used is None and exc.cause == "lost":
-                        # the servo has not started: nothing it commands rests on this
-                        # look; the arm goes on as planned until a look it can use
-                        unused += 1
-                        break
-                    raise StepFailed(f"servo_{exc.cause}",
-                                     f"{name(k)}: {exc.detail}") from None
-                used = (k, D)
+                if not run.take(k, seen, stamp, now, D, _pose_name(k, n)):
+                    break
                 # done once the error is within the servo's aim, or within what the look
                 # itself can tell apart (two sigmas): a further correction would chase
                 # the look's noise, and each look is another chance to lose the track
-                if (errors[-1] <= max(s.drive_servo.done_shift, 2.0 * seen.sigma_position)
+                if (run.errors[-1] <= max(s.drive_servo.done_shift, 2.0 * seen.sigma_position)
                         or k != n):
                     break
                 D = servo.correction(k)
-                go(D @ poses[k], f"{name(k)}, correction {attempt + 1}")
-        return {"servo_looks": len(errors), "servo_blind_looks": blind,
-                "servo_unused_looks": unused,
+                go(D @ poses[k], f"{_pose_name(k, n)}, correction {attempt + 1}")
+        errors = run.errors
+        return {"servo_looks": len(errors), "servo_blind_looks": run.blind,
+                "servo_unused_looks": run.unused,
                 "servo_span_deg": round(math.degrees(servo.span), 1),
                 "servo_first_error_mm": round(errors[0] * 1e3, 3) if errors else None,
                 "servo_max_error_mm": round(max(errors) * 1e3, 3) if errors else None,
                 "servo_last_error_mm": round(errors[-1] * 1e3, 3) if errors else None,
                 "servo_correction_mm": round(float(np.linalg.norm(
-                    servo.correction(n)[:3, 3])) * 1e3, 3)}, (
-                        self.cell.gripper_pose(arm) @ invert(at_frame) if looked is None
-                        else model_motion(n, D, looked))
+                    servo.correction(n)[:3, 3])) * 1e3, 3), **streamed}, run.motion_to(
+                        n, D, self.cell.gripper_pose(arm), run.looked)
+
+    def _drive_streamed(self, arm: str, run: _ServoRun, poses: np.ndarray, end: int,
+                        go: Callable[[np.ndarray, str], None]
+                        ) -> tuple[int, dict[str, Any]]:
+        """The servoed drive's poses ``0 .. end - 1`` (0: the approach, where the arm is)
+        corrected on every tracked frame: the tracking task (``self.feed``) captures and
+        tracks the views while the arm moves, and each newer tracked frame the step takes
+        is one look for the servo's model (``run``) and one command, to the next pose with
+        the corrected translation; so the arm never moves more than one drive pose per
+        tracked frame, and a stream that stops stops the arm (``servo_stale`` after
+        ``stream_timeout``). A frame is looked at as of its capture: the pose and
+        correction then in force (at most one command old: the task captures the next
+        frame while it tracks the last). Returns the first pose not yet commanded and the
+        figures: commands a second while streaming (``servo_rate_hz``), each command's
+        time from its frame's arrival (``servo_latency_ms``), each tracked frame's work
+        (``servo_frame_work_ms``), frames tracked."""
+        s = self.s
+        n = len(poses) - 1
+        lock = threading.Lock()            # a frame shows one commanded state, whole
+        state: dict[str, Any] = {"k": 0, "D": np.eye(4)}
+        base = run.at_frame                 # the reported tool at the tracker's last look
+
+        # a cell that can expose a frame (copy its state) renders it outside the lock,
+        # so the arm is not held up by the renderer; another renders under it
+        expose = getattr(self.cell, "expose", None)
+
+        def capture() -> tuple[dict[str, np.ndarray], tuple]:
+            with lock:
+                parts = [p for a in self.arms
+                         for p in self._tool_parts(self.cell.gripper_pose(a))]
+                meta = (state["k"], state["D"], self.cell.gripper_pose(arm), parts)
+                if expose is None:
+                    return self.cell.images(), meta
+                render = expose()
+            return render(), meta
+
+        def track(feats: list[NeedleFeatures], meta: tuple, previous: tuple | None
+                  ) -> NeedleTrack:
+            self.tracker.set_tools(meta[3])
+            # one update a frame, predicted with the arm's reported motion since the last
+            # tracked frame: a drive pose or two, where the arm's error barely turns; the
+            # wire slips in the jaws by the frame's share of the turn
+            self.tracker.predict(meta[2] @ invert(base if previous is None else previous[2]),
+                                 split=True)
+            return self.tracker.update(feats)
+
+        # the needle is in the driver's closed jaws throughout
+        self.tracker.fix_side(True)
+        feed = self.feed(capture, self._features_of, track)
+        seq, k = 0, 0
+        latency: list[float] = []
+        commands: list[float] = []
+        try:
+            while k < end:
+                fr = feed.next(seq, s.stream_timeout)
+                seq = fr.seq
+                kc, Dc, tool, _ = fr.meta
+                if k - kc > STREAM_LAG:
+                    raise ServoStop("stale", f"the newest tracked frame was captured at "
+                                             f"{_pose_name(kc, n)}, {k - kc} commands ago")
+                now = time.monotonic()
+                seen = Seen.from_track(fr.track, fr.stamp, held=True)
+                run.take(kc, seen, now, tool, Dc, _pose_name(kc, n))
+                k += 1
+                if k >= end:
+                    break
+                D = run.servo.correction(k)
+                with lock:
+                    go(D @ poses[k], _pose_name(k, n))
+                    state.update(k=k, D=D)
+                commands.append(time.monotonic())
+                latency.append(commands[-1] - fr.stamp)
+        except ServoStop as exc:
+            raise StepFailed(f"servo_{exc.cause}", f"{_pose_name(k, n)}: {exc.detail}"
+                             ) from None
+        finally:
+            last = feed.stop()
+            self.tracker.fix_side(False)
+        if last is not None:
+            # the tracker's state is that of its last frame: the next look moves it on
+            run.at_frame, run.looked = last.meta[2], (last.meta[0], last.meta[1])
+        return k, {"servo_streamed_poses": k, "servo_frames": seq,
+                   "servo_rate_hz": (round((len(commands) - 1) / (commands[-1] - commands[0]), 1)
+                                     if len(commands) > 1 else None),
+                   # each command's capture-to-command time, and each tracked frame's work
+                   # (features and tracking): what a camera-fed rate would be bound by
+                   "servo_latency_ms": [round(v * 1e3, 1) for v in latency],
+                   "servo_frame_work_ms": [round(v * 1e3, 1) for v in feed.work_s]}
 
     def _arc_under(self, T_N: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:func:`_arc_under` on this procedure's tissue surface."""
