@@ -301,7 +301,8 @@ class CellTruth:
     hold it (in the scene's gripper order). ``in_tissue``: part of the arc (centreline) is
     below the pad's surface, within the pad's extent. ``T_tool_needle``: per holding
     gripper, the actual grasp (N in T, true poses). ``entry`` (3,): where the tip first went
-    down through the pad's surface while a gripper moved the needle, else ``None``;
+    down through the pad's surface while a gripper moved the needle (an arm's motion; not
+    the jaws aligning it as they close), else ``None``;
     ``exit`` (3,): where the tip afterwards came back up through it, else ``None`` (both in
     the reference frame, m; crossings outside the pad's extent do not count).
     ``out_of_tissue_after_pull``: the whole arc is above the surface after having been in
@@ -625,7 +626,11 @@ class NeedleCell:
                 A[:3, :3] = Rz
                 A[:3, 3] = q - Rz @ q              # about the axis through the grasp point
                 M = A @ M
-        self._set_needle(nearest_rigid(T_tool @ M @ T_T_N))
+        # the jaws' own alignment of the wire is no bite: turning a needle that lies on
+        # the pad about the grasp can dip its tip a fraction of a millimetre below the
+        # surface (no contact model), which was taken for the suture's entry, 20-38 mm
+        # from the incision (validation trials 1000079, 1000115, 1000452)
+        self._set_needle(nearest_rigid(T_tool @ M @ T_T_N), crossings=False)
         self._grasp[name] = nearest_rigid(M @ T_T_N)
         for other in self._grasp:                  # the other holder's jaws slip
             if other != name:
@@ -673,8 +678,12 @@ class NeedleCell:
         h, over = self._heights(transform_points(T_ref_needle, self._arc_tissue))
         return bool(np.any((h < 0.0) & over))
 
-    def _set_needle(self, T_new: np.ndarray) -> None:
-        """Move the needle, tracking the tip's crossings of the pad's surface."""
+    def _set_needle(self, T_new: np.ndarray, crossings: bool = True) -> None:
+        """Move the needle, tracking the tip's crossings of the pad's surface (not where
+        ``crossings`` is False: the jaws aligning the wire as they close)."""
+        if not crossings:
+            self._T_needle = T_new
+            return
         tip = self._nd.needle.tip[None]
         tip0 = transform_points(self._T_needle, tip)[0]
         tip1 = transform_points(T_new, tip)[0]

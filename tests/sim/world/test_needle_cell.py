@@ -397,6 +397,48 @@ def test_images_are_new_frames_with_the_jaw_state(cell):
     assert cell.last_frame.needle_truth["left"]["ct1"].visible_fraction < 1.0  # jaws on it
 
 
+def test_an_exposure_renders_the_state_it_was_taken_in(cell):
+    """Issue 36, the streamed drive: ``expose()`` takes the state now (a new frame
+    number); rendered after the cell has moved, the frame still shows that state, as a
+    camera's exposure would, and ``images()`` is an exposure rendered at once."""
+    before = cell.gripper_pose("left")
+    render = cell.expose()
+    T = before.copy()
+    T[:3, 3] += [0.0, 0.0, 0.003]
+    cell.move("left", T)
+    render()
+    assert cell.last_frame.frame == 0 and cell.frame == 1
+    np.testing.assert_allclose(cell.last_frame.T_ref_tool["left"], before, atol=1e-12)
+    cell.images()
+    assert cell.last_frame.frame == 1
+    np.testing.assert_allclose(cell.last_frame.T_ref_tool["left"], cell.gripper_pose("left"),
+                               atol=1e-12)
+
+
+def test_the_jaws_aligning_a_needle_on_the_pad_make_no_entry(cell):
+    """The truth's entry is a bite an arm makes: jaws tilted 40 deg that close on a
+    needle lying on the pad, 4.5 deg crooked, turn the wire into their faces about their
+    own axis, which dips the tip 0.3 mm below the surface (no contact model); that is no
+    entry (it was taken for one, 20-38 mm from the incision, on validation trials
+    1000079, 1000115, 1000452). The held needle moved down through the pad afterwards
+    makes one."""
+    T = (_above(cell.truth().T_ref_needle, 1.2)
+         @ make_transform(Rotation.from_euler("x", 40.0, degrees=True))
+         @ make_transform(Rotation.from_euler("z", 4.5, degrees=True)))
+    cell.move("left", T)
+    assert cell.close("left")
+    tip = transform_points(cell.truth().T_ref_needle, cell.needle.tip[None])
+    h, over = cell._heights(tip)
+    assert h[0] < -2e-4 and over[0], h
+    assert cell.truth().entry is None
+    n = cell._T_pad_ref[2, :3]              # the pad's normal (reference frame)
+    for shift in (0.002, -0.006):           # lifted clear, then down through the pad
+        T = cell.gripper_pose("left")
+        T[:3, 3] += shift * n
+        cell.move("left", T)
+    assert cell.truth().entry is not None
+
+
 def test_bad_input_is_refused(example):
     """Item 4, errors: a scene with no pad or three grippers, reach missing for a gripper,
     an unknown gripper name, or a target that is not a rigid transform give a clear
