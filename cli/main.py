@@ -24,6 +24,7 @@
     oralnav bench console --out DIR [--seconds S] [--fps F] [--rounds N] [--json]
     oralnav bench hil --out DIR [--runs N] [--camera-latency S] [--camera-clock-offset S]
     oralnav bench igtl --out DIR [--seconds S] [--json]
+    oralnav bench needle-stream --out DIR [--seed S] [--trials N] [--fps F ...] [--json]
     oralnav report --out DIR [--quick] [--force] [--only KEY ...] [--scheduler ADDRESS]
                                                              (cli/report.py)
 
@@ -35,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -455,7 +457,7 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
     sweeping = len(levels) > 1
     if sweeping and (args.servo or args.stream or args.tracking):
         raise UsageError("a --difficulty sweep runs each difficulty open-loop and servoed, "
-                         "and charts no tracking: give it without --servo or --tracking")
+                         "and charts no tracking: give it without --servo, --stream or --tracking")
     from oralnav.bench.executor import SchedulerError
 
     try:
@@ -579,6 +581,40 @@ def cmd_bench_faults(args: argparse.Namespace) -> int:
     _emit(args, s, "fault campaign: " + ", ".join(
         f"{k} {'met' if v['met'] else 'NOT met' if v['met'] is False else 'undecided'}"
         for k, v in s["targets"].items()) + f" (details in {s['json']})")
+    return 0
+
+
+def _stream_line(r: dict[str, Any]) -> str:
+    """One played-back rate of ``oralnav bench needle-stream`` in words."""
+    at = "as taken" if not r["fps"] else f"{r['fps']:g} fps"
+    return (f"{at} {r['rate_hz']['p50']} Hz, arrival to step p50 {r['latency_ms']['p50']}"
+            f" / p99 {r['latency_ms']['p99']} ms")
+
+
+def cmd_bench_needle_stream(args: argparse.Namespace) -> int:
+    """``oralnav bench needle-stream``: the streamed drive servo's rate and latency with
+    the recorded frames played at camera rate (bench/needle_stream.py)."""
+    from oralnav.bench import needle_stream
+
+    if args.trials < 1:
+        raise UsageError(f"--trials must be at least 1, got {args.trials}")
+    if any(not (math.isfinite(f) and f >= 0) for f in args.fps):
+        raise UsageError(f"--fps takes frame rates >= 0 (0: as fast as tracked), got "
+                         f"{' '.join(f'{f:g}' for f in args.fps)}")
+    try:
+        doc = needle_stream.main(Path(args.out), seed=args.seed, trials=args.trials,
+                                 fps=args.fps)
+    except RuntimeError as exc:
+        raise UsageError(str(exc)) from None
+    summary = {k: {"rate_hz": r["rate_hz"], "latency_ms": r["latency_ms"],
+                   "skipped": r["skipped"]} for k, r in doc["replay"].items()}
+    _emit(args, {"drives": doc["drives"], "replay": summary, "command_ms": doc["command_ms"],
+                 "closed_loop_rate_hz": doc["closed_loop"]["rate_hz"], "met": doc["met"]},
+          f"{doc['drives']} streamed drives; closed-loop (renderer-paced) "
+          f"{doc['closed_loop']['rate_hz']['p50']} Hz; played back: "
+          + "; ".join(_stream_line(r) for r in doc["replay"].values())
+          + f"; command p50 {(doc['command_ms'] or {}).get('p50')} ms; "
+          f"30 Hz target {'met' if doc['met'] else 'not met'}")
     return 0
 
 
@@ -791,6 +827,17 @@ def build_parser() -> argparse.ArgumentParser:
     hl.add_argument("--out", required=True, help="folder for hil.json and each run's log")
     hl.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     hl.set_defaults(func=cmd_bench_hil)
+    ns = bn.add_parser("needle-stream", help="the streamed drive servo's rate and "
+                                             "latency: drives recorded, their frames played "
+                                             "back at camera rate (about 3 minutes)")
+    ns.add_argument("--seed", type=int, default=100, help="first development seed (100)")
+    ns.add_argument("--trials", type=int, default=5, help="drives to record (5)")
+    ns.add_argument("--fps", type=float, nargs="+", default=[30.0, 60.0, 0.0],
+                    help="camera rates to play the frames at (0: as fast as tracked; "
+                         "default 30 60 0)")
+    ns.add_argument("--out", required=True, help="folder for needle_stream.json")
+    ns.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    ns.set_defaults(func=cmd_bench_needle_stream)
     ig = bn.add_parser("igtl", help="the OpenIGTLink server (3D Slicer): messages per "
                                     "second and pose age at receipt on loopback (about "
                                     "15 s)")

@@ -36,9 +36,10 @@ __all__ = ["NeedleTrackingTask", "start_tracking"]
 class NeedleTrackingTask:
     """Runs ``capture`` and ``track`` (see the module docstring) until :meth:`stop`.
     Implements :class:`~oralnav.control.needle.procedure.feed.TrackingFeed`.
-    ``capture_s`` and ``track_s``: the seconds each frame's ``prepare`` and ``track``
+    ``prepare_s`` and ``track_s``: the seconds each frame's ``prepare`` and ``track``
     took, in order: the daemon's own work on a frame (the capture itself is the camera's,
-    here the renderer's); ``work_s``: both together for each tracked frame."""
+    here the renderer's). The two run at once, so a camera-fed task keeps up with frames
+    as fast as the slower of the two."""
 
     def __init__(self, capture: Capture, prepare: Prepare, track: Track,
                  name: str = "needle-tracking") -> None:
@@ -46,15 +47,14 @@ class NeedleTrackingTask:
         self._prepare = prepare
         self._track = track
         self._cond = threading.Condition()
-        # captured and prepared, not yet tracked: (seq, stamp, payload, meta, prepare s)
-        self._slot: tuple[int, float, Any, Any, float] | None = None
+        # captured and prepared, not yet tracked: (seq, stamp, payload, meta)
+        self._slot: tuple[int, float, Any, Any] | None = None
         self._latest: TrackedFrame | None = None
         self._error: BaseException | None = None
         self._stopping = False
         self._seq = 0
-        self.capture_s: list[float] = []
+        self.prepare_s: list[float] = []
         self.track_s: list[float] = []
-        self.work_s: list[float] = []
         self._threads = [threading.Thread(target=self._guarded, args=(loop,),
                                           name=f"{name}-{what}", daemon=True)
                          for what, loop in (("grab", self._grab), ("track", self._follow))]
@@ -87,10 +87,10 @@ class NeedleTrackingTask:
             # stand-in for one): what the daemon does with them from here is its latency
             stamp = time.monotonic()
             payload = self._prepare(images)
-            self.capture_s.append(time.monotonic() - stamp)
+            self.prepare_s.append(time.monotonic() - stamp)
             with self._cond:
                 self._seq += 1
-                self._slot = (self._seq, stamp, payload, meta, self.capture_s[-1])
+                self._slot = (self._seq, stamp, payload, meta)
                 self._cond.notify_all()
 
     def _follow(self) -> None:
@@ -101,14 +101,13 @@ class NeedleTrackingTask:
                     self._cond.wait()
                 if self._stopping:
                     return
-                seq, stamp, payload, meta, prepared = self._slot
+                seq, stamp, payload, meta = self._slot
                 self._slot = None
                 self._cond.notify_all()
             t0 = time.monotonic()
             track = self._track(payload, meta, previous)
             done = time.monotonic()
             self.track_s.append(done - t0)
-            self.work_s.append(prepared + done - t0)
             previous = meta
             with self._cond:
                 self._latest = TrackedFrame(seq, stamp, done, meta, track)

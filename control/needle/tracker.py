@@ -698,10 +698,11 @@ class NeedleTracker:
     def fix_side(self, fixed: bool) -> None:
         """While ``fixed``, a track whose base and tip are decided keeps them without the
         twin contest (a refit of the other twin, slid both ways: three times an update's
-        fits when the jaws hide the thread): for a needle held in closed jaws, which
-        cannot turn it end for end, so the contest could only be the tracker's own error
-        (a servo's jump guard catches a flip it would make). A track not yet decided is
-        still contested."""
+        fits when the jaws hide the thread) and without reading the thread's evidence
+        (``NeedleTrack.swage`` 0): for a needle held in closed jaws, which cannot turn it
+        end for end, so the contest could only be the tracker's own error (a servo's jump
+        guard catches a flip it would make). A track not yet decided is still
+        contested."""
         self._side_fixed = bool(fixed)
 
     def set_occluder(self, plane: TissuePlane | None) -> None:
@@ -812,14 +813,16 @@ class NeedleTracker:
             if self._determined(again):
                 ref = again
         pose = ref.pose if ref.ok else est.pose
-        swage = swage_evidence(self.needle, self.cameras, ridges, pose,
-                               tools=self.tools)
         # a continuing track keeps the base/tip decision it made on decisive evidence:
         # the thread hides behind the jaws or the tissue, or lies edge-on, for updates
         # on end, while the filter's swarm and the refinement stay on the same twin
         # (the other is a half turn away, and each update starts from the last pose)
         carried = (self._sided and self._prior is not None
                    and rotation_angle(self._prior[:3, :3].T @ pose[:3, :3]) < 0.5 * math.pi)
+        # with the sides fixed (fix_side) a carried decision is not read again: the
+        # thread's evidence would neither contest nor doubt it (0: no cue, unmeasured)
+        swage = (0.0 if carried and self._side_fixed
+                 else swage_evidence(self.needle, self.cameras, ridges, pose, tools=self.tools))
         initial = self.last is None and self._prior is None     # initialize()'s finish
         if not (carried and self._side_fixed) and (
                 (ref.ok and s.require_swage and (swage < s.swage_min or initial))

@@ -85,7 +85,8 @@ def test_an_arm_error_reaches_every_trial_and_is_recorded(monkeypatch, tmp_path,
     assert "with 2 mm / 1 deg arm errors" in capsys.readouterr().err
 
 
-def _recording_trial(seed: int, arm_error=None, servo: bool = False) -> dict:
+def _recording_trial(seed: int, arm_error=None, servo: bool = False,
+                     stream: bool = False) -> dict:
     """A stand-in trial (module level: it crosses to pool workers) that records the arm
     error and the servo setting it was given, the way run_trial does."""
     import os
@@ -97,6 +98,12 @@ def _recording_trial(seed: int, arm_error=None, servo: bool = False) -> dict:
         rec["arm_error"] = {"mm": arm_error[0], "deg": arm_error[1]}
     if servo:
         rec["servo"] = True
+    if stream:
+        rec["stream"] = True
+        rec["results"] = [{"step": "ND", "figures": {
+            "servo_rate_hz": 10.0 + seed, "servo_latency_ms": [40.0, 50.0 + seed],
+            "servo_command_ms": [1.0, 1.0],
+            "servo_prepare_ms": [10.0, 12.0], "servo_track_ms": [20.0, 30.0]}}]
     return rec
 
 
@@ -116,6 +123,29 @@ def test_a_servoed_run_reaches_every_trial_and_is_recorded(monkeypatch, tmp_path
     assert all("servo" not in r for r in again["records"])
     needle.main(tmp_path, trials=1, seed=0, workers=1, servo=True)
     assert "the drive servoed" in capsys.readouterr().err
+
+
+def test_a_streamed_run_is_recorded_and_sums_up_its_rate_and_latency(monkeypatch, tmp_path,
+                                                                     capsys):
+    """Issue 36 item 1 (the servo fed by a tracking task): ``stream`` reaches each trial
+    with the servo, records say it and only streamed records are kept for a streamed
+    run; the summary pools every command's latency and every frame's work, and the rate
+    the slower stage allows (they overlap); stderr prints them."""
+    store = tmp_path / "store"
+    monkeypatch.setattr(needle, "run_trial", _recording_trial)
+    looks = needle.run(2, 0, workers=1, progress=False, store=store, servo=True)
+    assert "stream" not in looks
+    doc = needle.run(2, 0, workers=2, progress=False, store=store, servo=True, stream=True)
+    assert [r.get("stream") for r in doc["records"]] == [True, True]
+    st = doc["stream"]
+    assert st["commands"] == 4 and st["drives"] == 2
+    assert st["rate_hz"] == {"p50": 10.5, "min": 10.0}
+    assert st["latency_ms"]["max"] == 51.0
+    assert st["frame_ms"]["tracking"]["p50"] == 25.0
+    assert st["tracking_capacity_hz"] == 40.0        # 1000 / the slower stage's 25 ms
+    needle.main(tmp_path, trials=1, seed=0, workers=1, servo=True, stream=True)
+    err = capsys.readouterr().err
+    assert "from a tracking task" in err and "streamed servo:" in err
 
 
 def _difficulty_trial(seed: int, arm_error=None, servo: bool = False,

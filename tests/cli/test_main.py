@@ -222,6 +222,41 @@ def test_bench_needle_difficulty_runs_a_level_or_the_sweep(tmp_path, capsys, mon
     assert len(calls) == 2
 
 
+def test_bench_needle_stream_is_passed_or_refused(tmp_path, capsys, monkeypatch):
+    """Issue 36 item 1: `bench needle --stream` runs the servoed Monte Carlo fed by the
+    tracking task (it implies --servo) and a sweep refuses it; `bench needle-stream`
+    passes its seeds and camera rates, and refuses a negative rate or no trials (exit 2,
+    naming the option) before recording anything."""
+    from oralnav.bench import needle_stream
+
+    calls = _stand_in_needle_main(monkeypatch, 2, "development")
+    assert cli.run(["bench", "needle", "--trials", "2", "--stream", "--out",
+                    str(tmp_path)]) == 0
+    assert calls[-1]["servo"] is True and calls[-1]["stream"] is True
+    capsys.readouterr()
+    assert cli.run(["bench", "needle", "--difficulty", "0", "1", "--stream", "--out",
+                    str(tmp_path), "--json"]) == 2
+    assert "without --servo" in _one_json(capsys)["error"]
+    runs = []
+
+    def main(out, seed, trials, fps):
+        runs.append((seed, trials, list(fps)))
+        r = {"fps": 30.0, "rate_hz": {"p50": 30.0}, "latency_ms": {"p50": 40.0, "p99": 50.0},
+             "skipped": 0}
+        return {"drives": trials, "replay": {"30": r}, "command_ms": {"p50": 1.0},
+                "closed_loop": {"rate_hz": {"p50": 12.0}}, "met": True}
+
+    monkeypatch.setattr(needle_stream, "main", main)
+    assert cli.run(["bench", "needle-stream", "--seed", "7", "--trials", "2", "--fps", "30",
+                    "--out", str(tmp_path), "--json"]) == 0
+    assert runs == [(7, 2, [30.0])] and _one_json(capsys)["met"] is True
+    for bad, why in ((["--fps", "-5"], "--fps"), (["--trials", "0"], "--trials")):
+        assert cli.run(["bench", "needle-stream", *bad, "--out", str(tmp_path),
+                        "--json"]) == 2
+        assert why in _one_json(capsys)["error"]
+    assert len(runs) == 1
+
+
 def test_bench_needle_bad_counts_exit_2_naming_the_option(tmp_path, capsys):
     """issue 30: `oralnav bench needle --trials 0` (or --workers 0) is bad input: exit
     status 2 and a message naming the option, before any trial runs."""

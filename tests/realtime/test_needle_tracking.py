@@ -61,7 +61,8 @@ def test_frames_come_newest_first_in_capture_order_with_their_times():
     for fr in seen:
         meta, previous = fr.track
         assert previous == (None if meta == 1 else meta - 1)
-    assert len(task.work_s) >= 10 and all(w > 0 for w in task.work_s)
+    assert len(task.track_s) >= 10 and all(w > 0 for w in task.track_s)
+    assert len(task.prepare_s) >= len(task.track_s)
 
 
 def test_capture_overlaps_tracking():

@@ -62,8 +62,13 @@ class TrackingFeed(Protocol):
         ...
 
     @property
-    def work_s(self) -> list[float]:
-        """The seconds of work (``prepare`` and ``track``) each tracked frame took."""
+    def prepare_s(self) -> list[float]:
+        """The seconds each frame's ``prepare`` took, in capture order."""
+        ...
+
+    @property
+    def track_s(self) -> list[float]:
+        """The seconds each tracked frame's ``track`` took, in order."""
         ...
 
     def stop(self) -> TrackedFrame | None:

@@ -684,8 +684,10 @@ class NeedleProcedure(CellActions):
         correction then in force (at most one command old: the task captures the next
         frame while it tracks the last). Returns the first pose not yet commanded and the
         figures: commands a second while streaming (``servo_rate_hz``), each command's
-        time from its frame's arrival (``servo_latency_ms``), each tracked frame's work
-        (``servo_frame_work_ms``), frames tracked."""
+        time from its frame's arrival (``servo_latency_ms``) and from the step taking
+        the frame (``servo_command_ms``: the servo's update and the move), each frame's
+        features and
+        tracking times (``servo_prepare_ms``, ``servo_track_ms``), frames tracked."""
         s = self.s
         n = len(poses) - 1
         lock = threading.Lock()            # a frame shows one commanded state, whole
@@ -721,10 +723,12 @@ class NeedleProcedure(CellActions):
         feed = self.feed(capture, self._features_of, track)
         seq, k = 0, 0
         latency: list[float] = []
+        command: list[float] = []           # from taking a frame to its command (s)
         commands: list[float] = []
         try:
             while k < end:
                 fr = feed.next(seq, s.stream_timeout)
+                taken = time.monotonic()
                 seq = fr.seq
                 kc, Dc, tool, _ = fr.meta
                 if k - kc > STREAM_LAG:
@@ -742,6 +746,7 @@ class NeedleProcedure(CellActions):
                     state.update(k=k, D=D)
                 commands.append(time.monotonic())
                 latency.append(commands[-1] - fr.stamp)
+                command.append(commands[-1] - taken)
         except ServoStop as exc:
             raise StepFailed(f"servo_{exc.cause}", f"{_pose_name(k, n)}: {exc.detail}"
                              ) from None
@@ -754,10 +759,13 @@ class NeedleProcedure(CellActions):
         return k, {"servo_streamed_poses": k, "servo_frames": seq,
                    "servo_rate_hz": (round((len(commands) - 1) / (commands[-1] - commands[0]), 1)
                                      if len(commands) > 1 else None),
-                   # each command's capture-to-command time, and each tracked frame's work
-                   # (features and tracking): what a camera-fed rate would be bound by
+                   # each command's arrival-to-command time, and each frame's work (its
+                   # features, its tracking: they overlap, so the slower bounds the rate a
+                   # camera faster than the simulator's renderer would get)
                    "servo_latency_ms": [round(v * 1e3, 1) for v in latency],
-                   "servo_frame_work_ms": [round(v * 1e3, 1) for v in feed.work_s]}
+                   "servo_command_ms": [round(v * 1e3, 2) for v in command],
+                   "servo_prepare_ms": [round(v * 1e3, 1) for v in feed.prepare_s],
+                   "servo_track_ms": [round(v * 1e3, 1) for v in feed.track_s]}
 
     def _arc_under(self, T_N: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:func:`_arc_under` on this procedure's tissue surface."""
