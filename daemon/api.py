@@ -154,7 +154,8 @@ class Operations(Protocol):
     # needle procedure (docs/needle.md "Procedure"); needle_cell and needle_step block
     # (render, track, move: worker thread); StateError -> 409 (refused, out of turn, busy)
     def needle(self) -> dict[str, Any]: ...
-    def needle_cell(self, trial: int, difficulty: float, who: str) -> dict[str, Any]: ...
+    def needle_cell(self, trial: int, difficulty: float, who: str,
+                    servo: str = "off") -> dict[str, Any]: ...
     def needle_step(self, step: str, who: str) -> dict[str, Any]: ...
     # temporal calibration (docs/calibration.md "Temporal calibration"): start returns the
     # run's report at once (StateError -> 409); the report gives the phase and the result
@@ -601,7 +602,8 @@ def build_app(ops: Operations, tokens: TokenStore, audit: AuditLog, *,
     async def post_needle_cell(request: Request, who: Operator,
                                body: NeedleCellBody) -> JSONResponse:
         return await command(request, who, "needle cell",
-                             lambda: ops.needle_cell(body.trial, body.difficulty, who.name),
+                             lambda: ops.needle_cell(body.trial, body.difficulty, who.name,
+                                                     body.servo),
                              in_thread=True)
 
     @app.post("/needle/{step}", responses=_COMMAND_ERRORS,

@@ -572,8 +572,9 @@ class DaemonCore:
     def needle(self) -> dict[str, Any]:
         return jsonable(self.needle_session.status())
 
-    def needle_cell(self, trial: int, difficulty: float, who: str) -> dict[str, Any]:
-        return jsonable(self.needle_session.load_trial(trial, difficulty, who))
+    def needle_cell(self, trial: int, difficulty: float, who: str,
+                    servo: str = "off") -> dict[str, Any]:
+        return jsonable(self.needle_session.load_trial(trial, difficulty, who, servo))
 
     def needle_step(self, step: str, who: str) -> dict[str, Any]:
         return jsonable(self.needle_session.run_step(step, who))

@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -31,9 +32,15 @@ from oralnav.control.needle.procedure import (
     port_drives,
     port_pair,
 )
+from oralnav.control.needle.servo import ServoSettings
+from oralnav.realtime.needle_tracking import start_tracking
 from oralnav.safety.errors import StateError
 
 log = logging.getLogger(__name__)
+
+#: How a loaded cell's drive is guided: open-loop, servoed on looks every few poses, or
+#: servoed frame by frame from the needle tracking task.
+SERVO_MODES = ("off", "looks", "stream")
 
 
 class StoppableCell:
@@ -85,9 +92,17 @@ class NeedleSession:
         self._cell_info: dict[str, Any] | None = None
         self._busy: str | None = None
 
-    def load_trial(self, trial: int, difficulty: float, who: str) -> dict[str, Any]:
+    def load_trial(self, trial: int, difficulty: float, who: str,
+                   servo: str = "off") -> dict[str, Any]:
         """Replace the cell by simulated trial ``trial`` (a fresh procedure at NG). A bad
-        seed or difficulty is the trial's ``CellError`` (a ValueError: 422)."""
+        seed or difficulty is the trial's ``CellError`` (a ValueError: 422). ``servo``:
+        the drive open-loop (``off``), servoed on looks every few poses (``looks``), or
+        servoed frame by frame from the needle tracking task
+        (:mod:`oralnav.realtime.needle_tracking`; ``stream``), whose threads run under the
+        step's and end with it; a stop that comes while it runs halts the arm within one
+        increment as for any step."""
+        if servo not in SERVO_MODES:
+            raise ValueError(f"servo must be one of {', '.join(SERVO_MODES)}, got {servo!r}")
         from oralnav.config.rig import trial_rig
         from oralnav.sim.world.needle_trials import CT1, trial_cell
         from oralnav.sim.world.needle_truth import check_truth
@@ -99,17 +114,23 @@ class NeedleSession:
             cell, info = trial_cell(int(trial), rig=trial_rig(), difficulty=float(difficulty),
                                     drivable=port_drives(CT1, self._settings),
                                     workable=port_pair(CT1, self._settings))
+            settings = (self._settings if servo == "off" else
+                        replace(self._settings,
+                                drive_servo=self._settings.drive_servo or ServoSettings()))
             proc = NeedleProcedure(StoppableCell(cell, self._refused), info.incision,
-                                   info.surface_normal, self._settings,
+                                   info.surface_normal, settings,
                                    surface_outline=info.surface_outline,
-                                   truth_check=check_truth)
+                                   truth_check=check_truth,
+                                   feed=start_tracking if servo == "stream" else None)
             self._proc = proc
             self._cell_info = {"trial": int(trial), "difficulty": float(difficulty),
+                               "servo": servo,
                                "loaded_by": who, "incision": info.incision.tolist(),
                                "surface_normal": info.surface_normal.tolist()}
         finally:
             self._lock.release()
-        log.info("needle cell: trial %d (difficulty %.2f) loaded by %s", trial, difficulty, who)
+        log.info("needle cell: trial %d (difficulty %.2f, servo %s) loaded by %s", trial,
+                 difficulty, servo, who)
         return self.status()
 
     def run_step(self, step: str, who: str) -> dict[str, Any]:

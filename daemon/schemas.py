@@ -145,10 +145,13 @@ class GuidePlanBody(_Body):
 class NeedleCellBody(_Body):
     """``POST /needle/cell``: load simulated needle trial ``trial`` (a seed) with imaging
     nuisances scaled by ``difficulty`` (0..2; above 1 a harder layout too:
-    ``oralnav.sim.world.needle_trials.MAX_DIFFICULTY``)."""
+    ``oralnav.sim.world.needle_trials.MAX_DIFFICULTY``), its drive guided by ``servo``:
+    ``off`` (open-loop), ``looks`` (servoed on looks every few poses) or ``stream``
+    (servoed on every frame of the needle tracking task)."""
 
     trial: Annotated[int, Field(ge=0, le=2**32 - 1, strict=True)]
     difficulty: Annotated[float, Field(ge=0.0, le=2.0)] = 1.0
+    servo: Literal["off", "looks", "stream"] = "off"
 
 
 class TemporalCalibrationBody(_Body):

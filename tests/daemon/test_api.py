@@ -146,9 +146,10 @@ class FakeOps:
     def needle(self) -> dict[str, Any]:
         return {"cell": self.needle_trial, "done": list(self.needle_done)}
 
-    def needle_cell(self, trial: int, difficulty: float, who: str) -> dict[str, Any]:
+    def needle_cell(self, trial: int, difficulty: float, who: str,
+                    servo: str = "off") -> dict[str, Any]:
         self.plan_thread = threading.current_thread()
-        self.calls.append(("needle_cell", trial, difficulty, who))
+        self.calls.append(("needle_cell", trial, difficulty, who, servo))
         self.needle_trial, self.needle_done = trial, []
         return self.needle()
 
@@ -1048,7 +1049,8 @@ async def test_needle_cell_and_steps_over_rest(client, rig):
     """issue 7, item 7: POST /needle/cell loads a cell (in a worker thread), POST
     /needle/{step} runs a step and answers its result, GET /needle reads the state; a
     refused step is 409 with the core's reason; a step name that is not one of the five
-    is 422 and reaches nothing; every command is audited."""
+    is 422 and reaches nothing, as is a servo mode other than off, looks, stream (issue
+    36); every command is audited."""
     r = await client.post("/needle/NG", headers=rig.op)
     assert r.status_code == 409 and "POST /needle/cell" in r.json()["detail"]
     r = await client.post("/needle/cell", headers=rig.op, json={"trial": 7, "difficulty": 0.5})
@@ -1061,12 +1063,15 @@ async def test_needle_cell_and_steps_over_rest(client, rig):
     for bad in ("/needle/ng", "/needle/XX"):
         assert (await client.post(bad, headers=rig.op)).status_code == 422
     for body in ({"trial": -1}, {"trial": "3"}, {"trial": 1, "difficulty": 2.5},
-                 {"trial": 1, "extra": 0}):
+                 {"trial": 1, "extra": 0}, {"trial": 1, "servo": "fast"}):
         r = await client.post("/needle/cell", headers=rig.op, json=body)
         assert r.status_code == 422, body
     assert (await client.get("/needle", headers=rig.obs)).json() == {"cell": 7, "done": ["NG"]}
-    assert rig.ops.calls == [("needle_cell", 7, 0.5, "operator"),
+    assert rig.ops.calls == [("needle_cell", 7, 0.5, "operator", "off"),
                              ("needle_step", "NG", "operator")]
+    r = await client.post("/needle/cell", headers=rig.op, json={"trial": 7, "servo": "stream"})
+    assert r.status_code == 200 and rig.ops.calls[-1] == ("needle_cell", 7, 1.0, "operator",
+                                                          "stream")
     statuses = [(x["path"], x["status"]) for x in audit_lines(rig)]
     assert ("/needle/NR", 409) in statuses and ("/needle/XX", 422) in statuses
 
