@@ -28,7 +28,9 @@ Guards, each a :class:`ServoStop` naming its cause, before anything is commanded
   puts it, by more than ``max_jump_shift`` or ``max_jump_turn`` (a twin flip turns the
   needle 180 deg; a slip in the jaws moves it); never a servo on a contradicted pose;
 - ``not_finite``: a pose that is not a finite rigid transform;
-- ``no_progress``: ``max_updates`` corrections without reaching the goal.
+- ``no_progress``: ``max_updates`` corrections without reaching the goal;
+- ``implausible`` (:class:`DriveServo`): the needle seen further off the plan than the
+  arms' stated accuracy allows: the tracker's error, not the arm's.
 
 A frame no newer than the last one used is not used twice (that would double its
 correction): the update holds (an identity command). Frames: the reference frame (the
@@ -304,7 +306,7 @@ class DriveServo:
     """
 
     def __init__(self, goals: np.ndarray, settings: ServoSettings | None = None,
-                 prior_shift: float = 0.003) -> None:
+                 prior_shift: float = 0.003, plausible_sigmas: float = 4.0) -> None:
         goals = np.asarray(goals, dtype=float)
         if goals.ndim != 3 or goals.shape[1:] != (4, 4) or len(goals) < 1:
             raise NeedleError(f"drive servo: the goals must be (n, 4, 4) poses, got "
@@ -314,8 +316,12 @@ class DriveServo:
         if not (math.isfinite(prior_shift) and prior_shift > 0):
             raise NeedleError(f"drive servo: prior_shift must be finite and > 0 m, got "
                               f"{prior_shift}")
+        if not (math.isfinite(plausible_sigmas) and plausible_sigmas > 0):
+            raise NeedleError(f"drive servo: plausible_sigmas must be finite and > 0, got "
+                              f"{plausible_sigmas}")
         self.s = settings or ServoSettings()
         self.prior_shift = float(prior_shift)
+        self.plausible_sigmas = float(plausible_sigmas)
         self._rows: list[np.ndarray] = []
         self._rhs: list[np.ndarray] = []
         self._weights: list[float] = []
@@ -387,19 +393,35 @@ class DriveServo:
                                         f"mm, {math.degrees(s.max_jump_turn):.0f} deg)")
 
     def update(self, k: int, seen: Seen, now: float, tool_motion: np.ndarray,
-               applied: np.ndarray) -> float:
+               applied: np.ndarray, weight: float = 1.0) -> float:
         """Take the look ``seen`` at drive pose ``k`` (after :meth:`check`'s guards, which
         raise), the arm having been sent ``applied`` (4x4, reference frame) times the
-        planned pose there; refit the model. Returns how far (m) the centre was seen from
-        the plan."""
+        planned pose there; refit the model. ``weight`` (0, 1]: the look's share of an
+        independent look's weight (frames a few poses apart share their errors: the same
+        views, the same biases). Returns how far (m) the centre was seen from the plan.
+
+        ``implausible`` (a :class:`ServoStop`): the centre, less the servo's own
+        translation, further from the plan than ``plausible_sigmas`` times what the
+        model's prior allows (the arm's error and the grasp's, ``prior_shift`` each) and
+        the look's own sigma: what the arms cannot have done, the tracker did (an
+        exact-armed development trial saw 13 mm at the approach and drove 3 mm off)."""
         self.check(seen, now, tool_motion)
+        if not (math.isfinite(weight) and 0.0 < weight <= 1.0):
+            raise NeedleError(f"drive servo: a look's weight must be in (0, 1], got {weight}")
         goal = self.goals[k]
         m = seen.pose[:3, 3] - goal[:3, 3]
         d = _moved_by(applied, goal[:3, 3])
+        off = float(np.linalg.norm(m - d))
+        bound = self.plausible_sigmas * math.hypot(math.sqrt(2.0) * self.prior_shift,
+                                                   seen.sigma_position)
+        if off > bound:
+            raise ServoStop("implausible", f"the centre is seen {off * 1e3:.2f} mm from where "
+                                           f"the plan and the servo put it; the arms' stated "
+                                           f"accuracy allows {bound * 1e3:.2f} mm")
         # m - d = -e + A_k x
         self._rows.append(np.hstack([-np.eye(3), goal[:3, :3]]))
         self._rhs.append(m - d)
-        self._weights.append(1.0 / max(seen.sigma_position, 1e-5))
+        self._weights.append(weight / max(seen.sigma_position, 1e-5))
         self._angles.append(self._angle(k))
         self._last = seen
         W = np.repeat(self._weights, 3)

@@ -331,6 +331,46 @@ def test_drive_servo_stops_on_a_circle_off_the_predicted_motion():
     assert e.value.cause == "jump" and "3.00 mm" in str(e.value)
 
 
+def test_drive_servo_takes_no_look_further_off_than_the_arms_can_be():
+    """Issue 36 (the streamed drive on exact arms): a centre seen further off the plan
+    than ``plausible_sigmas`` times the prior allows (with a 0.3 mm prior, 4 x 0.43 mm)
+    is the tracker's error: ``implausible``, the model as it was; within it, the look is
+    taken. A wider prior (inexact arms) takes the same look."""
+    goals = _drive_goals(HeldArm(np.eye(4)).needle)
+    far = goals[0].copy()
+    far[:3, 3] += [0.003, 0.0, 0.0]
+    tight = DriveServo(goals, prior_shift=0.0003)
+    with pytest.raises(ServoStop) as e:
+        tight.update(0, Seen(far, 1.0, sigma_position=0.0001), 1.0, np.eye(4), np.eye(4))
+    assert e.value.cause == "implausible" and "3.00 mm" in str(e.value)
+    assert tight.looks == 0 and np.allclose(tight.correction(10), np.eye(4))
+    near = goals[0].copy()
+    near[:3, 3] += [0.0015, 0.0, 0.0]
+    tight.update(0, Seen(near, 1.0, sigma_position=0.0001), 1.0, np.eye(4), np.eye(4))
+    wide = DriveServo(goals, prior_shift=0.0015)
+    wide.update(0, Seen(far, 1.0, sigma_position=0.0001), 1.0, np.eye(4), np.eye(4))
+    assert wide.looks == 1
+
+
+def test_a_look_s_weight_is_its_share_of_an_independent_one():
+    """Issue 36 (the streamed drive): four looks at a quarter's weight each (frames a
+    pose apart sharing their error) move the model as one full look does, where four at
+    full weight pull it further from the prior; a weight outside (0, 1] is refused."""
+    goals = _drive_goals(HeldArm(np.eye(4)).needle)
+    seen = goals[0].copy()
+    seen[:3, 3] += [0.0004, 0.0, 0.0]
+    look = Seen(seen, 1.0, sigma_position=0.0002)
+    one, shared, full = (DriveServo(goals, prior_shift=0.0003) for _ in range(3))
+    one.update(0, look, 1.0, np.eye(4), np.eye(4))
+    for _ in range(4):
+        shared.update(0, look, 1.0, np.eye(4), np.eye(4), weight=0.5)
+        full.update(0, look, 1.0, np.eye(4), np.eye(4))
+    np.testing.assert_allclose(shared.correction(0), one.correction(0), atol=1e-9)
+    assert abs(full.correction(0)[0, 3]) > abs(one.correction(0)[0, 3]) + 5e-5
+    with pytest.raises(NeedleError, match="weight"):
+        one.update(0, look, 1.0, np.eye(4), np.eye(4), weight=0.0)
+
+
 def test_drive_servo_refuses_malformed_goals():
     """Goals that are not (n, 4, 4) rigid poses, or a prior that is not a length, are
     refused naming what is wrong."""
