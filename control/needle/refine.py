@@ -886,7 +886,8 @@ def _pair(uv: np.ndarray, d: np.ndarray, g: np.ndarray) -> float:
 def swage_evidence(needle: Needle, cameras: Sequence[CameraModel],
                    ridges: Sequence[np.ndarray], T: np.ndarray, *,
                    span: tuple[float, float] = (0.002, 0.008), points: int = 12,
-                   cone: float = 0.15, tools: Sequence[ToolCylinder] = ()) -> float:
+                   cone: float = 0.15, cone_out: float | None = None,
+                   tools: Sequence[ToolCylinder] = ()) -> float:
     """How much more ridge lies beyond the base than beyond the tip (DN, mean over the
     views): the suture thread leaves the swage, nothing leaves the tip. Positive: ``T``
     has the base where the thread is; negative: the twin (base and tip swapped) is
@@ -898,7 +899,8 @@ def swage_evidence(needle: Needle, cameras: Sequence[CameraModel],
     end inside the wire, the other out on the thread) reads the wire stopping short
     beyond the first end and the thread going on beyond the other. At each distance
     ``d`` the thread may have bent off the tangent: the ridge's highest value across a
-    cross of half-width ``cone * d`` (in the needle's plane and out of it) is taken.
+    cross of half-width ``cone * d`` in the needle's plane and ``cone_out * d`` out of it
+    (``cone`` unless given) is taken.
     Samples behind one of ``tools`` in a view are not read there: a jaw beside an end
     is a ridge too, and would pass for the thread. Nor are samples within a wire's width
     of the needle's own image: seen nearly edge-on, the tangent beyond an end runs back
@@ -908,12 +910,14 @@ def swage_evidence(needle: Needle, cameras: Sequence[CameraModel],
     arc = needle.points(181)
     d = np.linspace(span[0], span[1], points)
     lat = np.linspace(-cone, cone, 5)
+    out = lat if cone_out is None else np.tan(np.linspace(
+        -cone_out, cone_out, 2 * max(2, math.ceil(cone_out / cone)) + 1))
     # unit offsets across the tangent at each end: in the plane (radial) and out of it
     ends = []
     for p, t in ((needle.base, -needle.tangent(0.0)), (needle.tip, needle.tangent(needle.arc))):
         radial = p / np.linalg.norm(p)
         ez = np.array([0.0, 0.0, 1.0])
-        across = np.concatenate([lat[:, None] * radial, lat[:, None] * ez])     # (10, 3)
+        across = np.concatenate([lat[:, None] * radial, out[:, None] * ez])
         pts = p + d[:, None, None] * (t[None, None, :] + across[None, :, :])    # (n, 10, 3)
         ends.append(pts.reshape(-1, 3))
     diffs = []

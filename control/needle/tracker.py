@@ -541,6 +541,12 @@ class TrackSettings:
     the evidence does not decide and the better crest fit (lower RMS) does; the slid
     twin's arc follows the thread, which leaves the circle. For the same reason a carried
     decision yields only to ``swage_contest`` times the evidence it was made on.
+    ``swage_cone_out`` (rad): how far out of the needle's plane the thread is looked for
+    as it leaves the swage (in the plane 0.15 rad): a needle that does not lie flat on
+    the tissue (resting on its ends, tilted up to 30 deg about its chord) has its limp
+    thread lying on the surface, out of its plane by the tilt; looked for within 0.15
+    rad, no thread was found at tilts of 12 deg or more and such pick-ups were refused
+    as not told apart.
 
     The motion prior: a needle whose motion is known (held in closed jaws, or standing in
     tissue) is where the last refined pose, moved by that motion, puts it, give or take
@@ -566,6 +572,7 @@ class TrackSettings:
     inject: float = 0.2
     swage_min: float = 8.0
     swage_contest: float = 1.5
+    swage_cone_out: float = 0.6
     require_swage: bool = True      # a threaded needle: base and tip must be told apart
     slide_drift: float = math.radians(1.0)
     tilt_drift: float = math.radians(0.5)
@@ -822,7 +829,8 @@ class NeedleTracker:
         # with the sides fixed (fix_side) a carried decision is not read again: the
         # thread's evidence would neither contest nor doubt it (0: no cue, unmeasured)
         swage = (0.0 if carried and self._side_fixed
-                 else swage_evidence(self.needle, self.cameras, ridges, pose, tools=self.tools))
+                 else swage_evidence(self.needle, self.cameras, ridges, pose,
+                                     cone_out=s.swage_cone_out, tools=self.tools))
         initial = self.last is None and self._prior is None     # initialize()'s finish
         if not (carried and self._side_fixed) and (
                 (ref.ok and s.require_swage and (swage < s.swage_min or initial))
@@ -843,7 +851,7 @@ class NeedleTracker:
                 if again.ok:
                     twin_ref, twin = again, again.pose
             twin_swage = swage_evidence(self.needle, self.cameras, ridges, twin,
-                                         tools=self.tools)
+                                        cone_out=s.swage_cone_out, tools=self.tools)
             # a twin whose slide the views leave free (its tip hidden) can slide until
             # its base lies on the wire itself, which then reads as the thread: its
             # evidence overturns nothing carried

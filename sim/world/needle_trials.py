@@ -253,7 +253,7 @@ def trial_scene(seed: int, *, rig: Rig, difficulty: float = 1.0,
                           level=img["needle_level"], specular=img["specular"],
                           shininess=needle.shininess, thread_length=needle.thread_length,
                           thread_diameter=needle.thread_diameter,
-                          thread_level=needle.thread_level)
+                          thread_level=needle.thread_level, thread_tilt=needle.thread_tilt)
     scene = Scene(rig=rig, placements=(), imaging=imaging, seed=int(seed),
                   source=f"needle trial {seed}", needles=(needle,), pads=(pad,),
                   grippers=grippers)
@@ -498,5 +498,7 @@ def _draw(rig: Rig, rng: np.random.Generator, drivable: PortCheck | None = None,
     }
     pad = TissuePad("pad", T_ref_pad, PAD_SIZE,
                     incision=((float(a[0]), float(a[1])), (float(b[0]), float(b[1]))))
-    needle = NeedleObject("needle", CT1, T_ref_needle, thread_length=THREAD_LENGTH)
+    # lifted about its chord, its thread lies on the pad (turned back by the lift)
+    needle = NeedleObject("needle", CT1, T_ref_needle, thread_length=THREAD_LENGTH,
+                          thread_tilt=lift)
     return (pad, needle, tuple(grippers)), reach, values, incision, normal

@@ -1440,6 +1440,9 @@ def _check_objects(scene: Scene) -> None:
                      thread_bend_radius=nd.thread_bend_radius)
             if not nd.thread_level >= 0:
                 raise RenderError(f"needle {nd.name!r}: thread_level must be >= 0")
+            if not (math.isfinite(nd.thread_tilt) and abs(nd.thread_tilt) <= math.pi / 2):
+                raise RenderError(f"needle {nd.name!r}: thread_tilt must be within +-pi/2 "
+                                  f"rad, got {nd.thread_tilt}")
     for pad in scene.pads:
         positive(f"pad {pad.name!r}", size_x=pad.size[0], size_y=pad.size[1],
                  incision_width=pad.incision_width)

@@ -8,6 +8,7 @@ in metres, angles in radians, image levels in digital numbers (DN, 0..255 for mo
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -120,6 +121,7 @@ class NeedleObject:
     thread_diameter: float = 0.0004
     thread_level: float = 45.0
     thread_bend_radius: float = 0.025
+    thread_tilt: float = 0.0
 
     def thread_arc(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """The thread as a circular arc in frame N: ``(centre, e1, e2, angle)`` with its
@@ -130,13 +132,21 @@ class NeedleObject:
         along ``-tangent(0)`` (straight on from the arc, away from the body, N's ``-y``)
         and bends in the needle's plane with the fixed radius ``thread_bend_radius``, away
         from the arc's centre (toward N's ``+x``), so it never crosses the needle; ``angle
-        = thread_length / thread_bend_radius``. No gravity, no contact: it goes where the
-        pose puts it (into a pad, which hides that part).
+        = thread_length / thread_bend_radius``. ``thread_tilt`` (rad) turns that plane
+        about N's x axis (through the base: the line from the arc's centre to it), its
+        start bending ``thread_tilt`` out of the needle's plane toward N's ``+z``: a needle
+        that rests on its ends, turned ``lift`` about its chord, has its thread lying on
+        the surface with ``thread_tilt = lift``. No gravity, no contact otherwise: it goes
+        where the pose puts it (into a pad, which hides that part).
         """
         rho = self.thread_bend_radius
         out = np.array([1.0, 0.0, 0.0])          # away from the arc's centre at the base
         centre = self.needle.base + rho * out
-        return centre, -out, -self.needle.tangent(0.0), self.thread_length / rho
+        start = -self.needle.tangent(0.0)
+        c, s = math.cos(self.thread_tilt), math.sin(self.thread_tilt)
+        # the start direction turned about x by -thread_tilt (N's y and z parts)
+        start = np.array([start[0], c * start[1] + s * start[2], -s * start[1] + c * start[2]])
+        return centre, -out, start, self.thread_length / rho
 
     def thread_points(self, n: int = 32) -> np.ndarray:
         """``n`` >= 2 points (n, 3) equally spaced along the thread's centreline, from the

@@ -42,9 +42,10 @@ T_TRUE = transform_from_euler([0.002, -0.001, 0.1], [25, -10, 30])
 WIRE_PX = 6.0                                          # 1 mm at 0.1 m
 
 
-def _draw(cam, T=T_TRUE, thread=False, noise=2.0, seed=0, plane=None):
+def _draw(cam, T=T_TRUE, thread=False, noise=2.0, seed=0, plane=None, thread_tilt=0.0):
     """A light pad with the needle drawn as an anti-aliased dark wire (6 px), optionally
-    with a thin (2 px) thread leaving the base; with ``plane`` (a TissuePlane), only
+    with a thin (2 px) thread leaving the base, straight on along the tangent or turned
+    ``thread_tilt`` (rad) out of the needle's plane; with ``plane`` (a TissuePlane), only
     the runs of the wire's axis above it."""
     rng = np.random.default_rng(seed)
     img = np.clip(170 + rng.normal(0, noise, (cam.height, cam.width)), 0, 255).astype(np.uint8)
@@ -59,7 +60,10 @@ def _draw(cam, T=T_TRUE, thread=False, noise=2.0, seed=0, plane=None):
     draw_visible_runs(img, uv, keep, 70, 6)
     if thread:
         d = np.linspace(0.0, 0.008, 40)[:, None]
-        pts = NEEDLE.base - d * NEEDLE.tangent(0.0)
+        c, sn = math.cos(thread_tilt), math.sin(thread_tilt)
+        out = -NEEDLE.tangent(0.0)
+        out = np.array([out[0], c * out[1] + sn * out[2], -sn * out[1] + c * out[2]])
+        pts = NEEDLE.base + d * out
         uv = cam.project_from(Tc, pts)
         cv2.polylines(img, [np.round(uv * 16).astype(np.int32)], False, 50, 2, cv2.LINE_AA, 4)
     return img
@@ -151,6 +155,30 @@ def test_swage_evidence_tells_base_from_tip():
     assert swage_evidence(NEEDLE, cams, ridges, T_TRUE) > 10
     assert swage_evidence(NEEDLE, cams, ridges, twin) < -10
     assert abs(swage_evidence(NEEDLE, cams, _ridges(cams), T_TRUE)) < 3
+
+
+def test_swage_evidence_finds_a_thread_that_leaves_the_needle_s_plane():
+    """Issue 36 item 4 (needles resting on their ends): a thread that leaves the swage
+    25 deg out of the needle's plane (lying on the surface the needle is tilted to) is
+    outside the 0.15 rad cross the cue was read in, which then read no thread; read
+    ``cone_out`` 0.6 rad out of the plane (the tracker's ``swage_cone_out``), it tells
+    base from tip as the straight thread does. A straight thread reads the same both
+    ways (the wider cross adds samples only out of the plane)."""
+    cams = [LEFT, RIGHT]
+    tracker = NeedleTracker(NEEDLE, cams, FilterSettings(particles=50))
+    # turned 50 deg about x, so that out of its plane is across the line of sight
+    T = T_TRUE.copy()
+    T[:3, :3] = Rotation.from_euler("x", 50.0, degrees=True).as_matrix() @ T[:3, :3]
+    twin = T.copy()
+    twin[:3, :3] = T[:3, :3] @ tracker.filter.flip
+    for tilt in (25.0, -25.0):
+        bent = _ridges(cams, T=T, thread=True, thread_tilt=math.radians(tilt))
+        assert abs(swage_evidence(NEEDLE, cams, bent, T)) < 8
+        assert swage_evidence(NEEDLE, cams, bent, T, cone_out=0.6) > 10
+        assert swage_evidence(NEEDLE, cams, bent, twin, cone_out=0.6) < -10
+    straight = _ridges(cams, T=T, thread=True)
+    assert swage_evidence(NEEDLE, cams, straight, T) > 10
+    assert swage_evidence(NEEDLE, cams, straight, T, cone_out=0.6) > 10
 
 
 def test_swage_evidence_does_not_read_the_wire_as_thread():

@@ -149,12 +149,17 @@ def test_harder_trials_tilt_the_pad_further_and_lift_the_needle(trials):
         arc = transform_points(T_pad_needle, nd.needle.points(200))
         assert arc[:, 2].min() >= 0.0005 - 1e-9
         np.testing.assert_allclose(arc[[0, -1], 2], 0.0005, atol=1e-9)
+        # its thread lies on the pad from the swage on (at the wire's height), not into it
+        thread = transform_points(T_pad_needle, nd.thread_points(16))
+        np.testing.assert_allclose(thread[:, 2], 0.0005, atol=1e-9)
+        assert nd.thread_tilt == pytest.approx(math.radians(lift), abs=1e-6)
         im = scene.imaging
         assert all(abs(g) <= 0.7 for g in im.illumination_gradient)
         assert 0.8 <= im.blur_sigma_px <= 2.2 and 1.0 <= im.read_noise_dn <= 5.0
         tilts.append(tilt)
         lifts.append(lift)
         assert "lift_deg" not in trials[seed][2].values["needle"]
+        assert trials[seed][0].needles[0].thread_tilt == 0.0
     assert max(tilts) > 35.0 and max(lifts) > 15.0, (max(tilts), max(lifts))
     _, _, half = trial_scene(0, rig=RIG, difficulty=1.5)
     assert 0.0 <= half.values["needle"]["lift_deg"] <= 15.0
