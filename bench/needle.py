@@ -359,12 +359,13 @@ def run(trials: int, seed: int, workers: int | None = None,
 MODES = (("open_loop", False), ("servoed", True))
 
 
-def _sweep_trial(item: tuple[int, float, bool, tuple[float, float] | None]
+def _sweep_trial(item: tuple[int, float, bool, tuple[float, float] | None, bool]
                  ) -> dict[str, Any]:
-    """:func:`run_trial` of one sweep item ``(seed, difficulty, servo, arm_error)``
-    (module level: it crosses to the pool's workers)."""
-    seed, difficulty, servo, arm_error = item
-    return run_trial(seed, arm_error, servo=servo, difficulty=difficulty)
+    """:func:`run_trial` of one sweep item ``(seed, difficulty, servo, arm_error,
+    stream)`` (module level: it crosses to the pool's workers)."""
+    seed, difficulty, servo, arm_error, stream = item
+    return run_trial(seed, arm_error, servo=servo, difficulty=difficulty,
+                     stream=servo and stream)
 
 
 def _rate(records: list[dict[str, Any]]) -> dict[str, Any]:
@@ -384,11 +385,12 @@ def _rate(records: list[dict[str, Any]]) -> dict[str, Any]:
 
 def sweep(levels: Sequence[float], trials: int, seed: int, workers: int | None = None,
           scheduler: str | None = None, arm_error: tuple[float, float] | None = None,
-          progress: bool = True) -> dict[str, Any]:
+          progress: bool = True, stream: bool = False) -> dict[str, Any]:
     """The difficulty sweep (issue 36, item 4): ``trials`` seeds from ``seed`` at each of
-    ``levels`` (0..2, :func:`run_trial`), each run open-loop and servoed, all on one
-    engine (``scheduler``/``workers`` as :func:`run`); the document: per mode, per level,
-    the success with its interval, the step rates and the first failures."""
+    ``levels`` (0..2, :func:`run_trial`), each run open-loop and servoed (``stream``: the
+    servo fed by the tracking task), all on one engine (``scheduler``/``workers`` as
+    :func:`run`); the document: per mode, per level, the success with its interval, the
+    step rates and the first failures."""
     if trials < 1:
         raise ValueError(f"needle bench: trials must be >= 1, got {trials}")
     levels = sorted({difficulty_checked(d) for d in levels})
@@ -396,7 +398,8 @@ def sweep(levels: Sequence[float], trials: int, seed: int, workers: int | None =
         raise ValueError("needle bench: a sweep needs at least two difficulties")
     arm_error = arm_error_checked(arm_error)
     seeds = list(range(seed, seed + trials))
-    items = [(s, d, servo, arm_error) for d in levels for _, servo in MODES for s in seeds]
+    items = [(s, d, servo, arm_error, stream)
+             for d in levels for _, servo in MODES for s in seeds]
     if scheduler is None:
         workers = max(1, min(workers or os.cpu_count() or 1, len(items)))
     t0 = time.perf_counter()
@@ -421,11 +424,11 @@ def sweep(levels: Sequence[float], trials: int, seed: int, workers: int | None =
         records = runner.map(_sweep_trial, items, on_result=report)
         engine, workers = runner.name, runner.workers
     by = {(d, servo): [] for d in levels for _, servo in MODES}
-    for (_, d, servo, _), rec in zip(items, records, strict=True):
+    for (_, d, servo, _, _), rec in zip(items, records, strict=True):
         by[(d, servo)].append(rec)
     return {"bench": "needle_difficulty", "levels": levels, "trials": trials,
             "seed": seed, "split": seed_split(seeds[0], seeds[-1]),
-            "arm_error": _arm_error_json(arm_error),
+            "arm_error": _arm_error_json(arm_error), "stream": stream,
             "modes": {name: [{"difficulty": d, **_rate(by[(d, servo)])} for d in levels]
                       for name, servo in MODES},
             "seconds": round(time.perf_counter() - t0, 1),
@@ -451,7 +454,8 @@ def sweep_chart(doc: dict[str, Any], path: Path) -> None:
         lo = y - np.array([100 * p["overall_interval"][0] for p in pts])
         hi = np.array([100 * p["overall_interval"][1] for p in pts]) - y
         ax.errorbar(x, y, yerr=[lo, hi], marker="o", capsize=3, color=colour,
-                    label=name.replace("_", "-"))
+                    label=name.replace("_", "-")
+                    + (" (streamed)" if name == "servoed" and doc.get("stream") else ""))
     ax.axvline(1.0, color="0.8", lw=0.8, zorder=0)
     err = doc["arm_error"]
     ax.set(xlabel="difficulty (1: the default trials; above 1 the layout harder too)",
@@ -486,7 +490,7 @@ def main(out: Path, quick: bool = False, trials: int | None = None, seed: int = 
         seed = VALIDATION_SEED
     if len(difficulty) > 1:
         return _main_sweep(out, difficulty, quick, trials, seed, workers, scheduler,
-                           arm_error)
+                           arm_error, stream)
     n = trials if trials is not None else (
         10 if quick else VALIDATION_TRIALS if validation else 200)
     doc = run(n, seed, workers, scheduler=scheduler, arm_error=arm_error, servo=servo,
@@ -521,16 +525,18 @@ def main(out: Path, quick: bool = False, trials: int | None = None, seed: int = 
 
 def _main_sweep(out: Path, levels: Sequence[float], quick: bool, trials: int | None,
                 seed: int, workers: int | None, scheduler: str | None,
-                arm_error: tuple[float, float] | None) -> dict[str, Any]:
+                arm_error: tuple[float, float] | None, stream: bool = False
+                ) -> dict[str, Any]:
     """:func:`main`'s sweep: run it, write its JSON and chart, print a line a point."""
     n = trials if trials is not None else (4 if quick else 40)
-    doc = sweep(levels, n, seed, workers, scheduler, arm_error)
+    doc = sweep(levels, n, seed, workers, scheduler, arm_error, stream=stream)
     out.mkdir(parents=True, exist_ok=True)
     (out / "needle_difficulty.json").write_text(json.dumps(doc, indent=1) + "\n")
     sweep_chart(doc, out / "needle_difficulty.png")
     print(f"needle sweep: {n} {doc['split']} trials a point from seed {seed}"
           + ("" if arm_error is None
              else f", {arm_error[0]:g} mm / {arm_error[1]:g} deg arm errors")
+          + (", servoed from a tracking task" if stream else "")
           + f", {doc['seconds'] / 60:.1f} min", file=sys.stderr)
     for k, d in enumerate(doc["levels"]):
         a, b = (doc["modes"][name][k] for name, _ in MODES)

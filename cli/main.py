@@ -455,9 +455,10 @@ def cmd_bench_needle(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(f"--difficulty: {exc}") from None
     sweeping = len(levels) > 1
-    if sweeping and (args.servo or args.stream or args.tracking):
-        raise UsageError("a --difficulty sweep runs each difficulty open-loop and servoed, "
-                         "and charts no tracking: give it without --servo, --stream or --tracking")
+    if sweeping and (args.servo or args.tracking):
+        raise UsageError("a --difficulty sweep runs each difficulty open-loop and servoed "
+                         "(--stream: servoed from the tracking task), and charts no "
+                         "tracking: give it without --servo or --tracking")
     from oralnav.bench.executor import SchedulerError
 
     try:
@@ -790,8 +791,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "drive_servo; default: open-loop, as planned)")
     nd.add_argument("--stream", action="store_true",
                     help="servo the drive from a tracking task that tracks every frame "
-                         "while the arm moves, correcting on each (implies --servo; "
-                         "needle.json's 'stream' gives the rate and latency)")
+                         "while the arm moves, correcting on each (implies --servo, or in "
+                         "a sweep is its servoed procedure; needle.json's 'stream' gives "
+                         "the rate and latency)")
     nd.add_argument("--difficulty", type=float, nargs="+", default=None, metavar="D",
                     help="the trials' difficulty, 0..2 (default 1: the usual trials; up "
                          "to 1 it scales the imaging nuisances, above 1 it also tilts the "

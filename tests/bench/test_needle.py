@@ -149,7 +149,7 @@ def test_a_streamed_run_is_recorded_and_sums_up_its_rate_and_latency(monkeypatch
 
 
 def _difficulty_trial(seed: int, arm_error=None, servo: bool = False,
-                      difficulty: float = 1.0) -> dict:
+                      difficulty: float = 1.0, stream: bool = False) -> dict:
     """A stand-in trial: the open-loop procedure fails the drive above difficulty 1 (the
     first failure undetected on even seeds), the servoed one never; both record what
     they were given, as run_trial does."""
@@ -163,6 +163,8 @@ def _difficulty_trial(seed: int, arm_error=None, servo: bool = False,
     rec = {"seed": seed, "steps": steps, "failure": failure, "seconds": 0.1, "results": []}
     if servo:
         rec["servo"] = True
+    if stream:
+        rec["stream"] = True
     if difficulty != 1.0:
         rec["difficulty"] = difficulty
     if arm_error is not None:
@@ -198,6 +200,13 @@ def test_the_difficulty_sweep_runs_both_procedures_at_each_level(monkeypatch, tm
     assert (tmp_path / "needle_difficulty.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     err = capsys.readouterr().err
     assert "difficulty 2: open-loop 0.0 %" in err and "servoed 100.0 %" in err
+    assert doc["stream"] is False and not any(r.get("stream") for r in doc["records"])
+    streamed = needle.main(tmp_path, trials=1, seed=10, workers=1, difficulty=[0.0, 2.0],
+                           stream=True)
+    assert streamed["stream"] is True
+    assert {r.get("servo", False): r.get("stream", False) for r in streamed["records"]} == {
+        False: False, True: True}
+    assert "servoed from a tracking task" in capsys.readouterr().err
 
 
 def test_bad_difficulties_are_refused_before_any_trial(monkeypatch):
