@@ -404,7 +404,8 @@ class DriveServo:
         translation, further from the plan than ``plausible_sigmas`` times what the
         model's prior allows (the arm's error and the grasp's, ``prior_shift`` each) and
         the look's own sigma: what the arms cannot have done, the tracker did (an
-        exact-armed development trial saw 13 mm at the approach and drove 3 mm off)."""
+        exact-armed validation trial, 1000607, saw 13 mm at the approach and drove 3 mm
+        off)."""
         self.check(seen, now, tool_motion)
         if not (math.isfinite(weight) and 0.0 < weight <= 1.0):
             raise NeedleError(f"drive servo: a look's weight must be in (0, 1], got {weight}")
