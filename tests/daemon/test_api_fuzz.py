@@ -94,9 +94,11 @@ class _QuickNeedles:
     def status(self) -> dict:
         return {"cell": self.cell, "running": None, "procedure": None}
 
-    def load_trial(self, trial: int, difficulty: float, who: str) -> dict:
+    def load_trial(self, trial: int, difficulty: float, who: str, servo: str = "off") -> dict:
         if not 0.0 <= difficulty <= 2.0:
             raise ValueError(f"difficulty must be in [0, 2], got {difficulty}")
+        if servo not in ("off", "looks", "stream"):
+            raise ValueError(f"servo must be one of off, looks, stream, got {servo!r}")
         self.cell = trial
         return self.status()
 
