@@ -19,7 +19,8 @@ def _task(capture_s: float = 0.0, track_s: float = 0.0, stall_after: int | None 
           fail_at: int | None = None):
     """A task on stand-ins: ``capture`` numbers its frames and sleeps ``capture_s``
     (blocking for good from frame ``stall_after`` on), ``track`` sleeps ``track_s`` and
-    returns (meta, previous meta), raising at frame ``fail_at``."""
+    returns (meta, previous meta), raising at frame ``fail_at`` once ``release`` is set
+    (so the test has taken the frames before it)."""
     count = {"n": 0}
     release = threading.Event()
 
@@ -33,6 +34,7 @@ def _task(capture_s: float = 0.0, track_s: float = 0.0, stall_after: int | None 
     def track(payload, meta, previous):
         assert payload == f"prepared image {meta}"
         if meta == fail_at:
+            release.wait(5.0)
             raise RuntimeError("test: the tracker broke")
         time.sleep(track_s)
         return (meta, previous)
@@ -105,8 +107,9 @@ def test_a_tracker_that_raises_ends_the_task_named():
     """An error in the tracking thread ends the task: the step's next wait raises
     ``tracker_failed`` with the error's type and message at once (not after the
     timeout), and stop() still returns."""
-    task, _ = _task(fail_at=2)
+    task, release = _task(fail_at=2)
     fr = task.next(0, timeout=2.0)
+    release.set()
     t0 = time.monotonic()
     with pytest.raises(ServoStop) as err:
         task.next(fr.seq, timeout=5.0)
