@@ -441,12 +441,9 @@ def test_an_inexact_arm_widens_the_position_by_the_motion_s_size(driven):
         TrackSettings(turn_drift=-1.0)
 
 
-def test_a_servo_s_motions_drift_by_their_share_of_a_half_turn(driven):
-    """Issue 36 (the servoed drive's looks): a motion a servo's model predicts
-    (``kinematic=False``) widens the slide and the tilt by its share of a half turn, so
-    a turn looked at in nine steps adds what one open-loop motion adds (a drift per look
-    took the slide's sigma to 3.5 deg by the regrasp); the arm's accuracy drifts do not
-    apply to it."""
+def _drifting(driven):
+    """A copy of the driven tracker with arm-accuracy drifts (2 mm a radian, 1 %), the
+    motion turning it 20 deg about its belief's centre, and the belief's covariance."""
     tr = copy.deepcopy(driven.tracker)
     tr.s = replace(tr.s, turn_drift=0.002, travel_drift=0.01)
     T_b, cov = tr._belief
@@ -454,6 +451,16 @@ def test_a_servo_s_motions_drift_by_their_share_of_a_half_turn(driven):
     step = (transform_from_euler(c, [0.0, 0.0, 0.0])
             @ transform_from_euler([0.0, 0.0, 0.0], [0.0, 0.0, 20.0])
             @ transform_from_euler(-c, [0.0, 0.0, 0.0]))
+    return tr, step, cov
+
+
+def test_a_servo_s_motions_drift_by_their_share_of_a_half_turn(driven):
+    """Issue 36 (the servoed drive's looks): a motion a servo's model predicts
+    (``kinematic=False``) widens the slide and the tilt by its share of a half turn, so
+    a turn looked at in nine steps adds what one open-loop motion adds (a drift per look
+    took the slide's sigma to 3.5 deg by the regrasp); the arm's accuracy drifts do not
+    apply to it."""
+    tr, step, cov = _drifting(driven)
     for _ in range(9):
         tr.predict(step, kinematic=False)
     added = np.diag(tr._belief[1] - cov)
@@ -472,13 +479,7 @@ def test_a_tracking_task_s_frames_drift_by_their_share_and_by_the_arm_s_accuracy
     predicted motion does, and the position by the arms' accuracy drifts as any reported
     motion does (a full slide drift a frame took the slide's sigma to 3.3 deg at the
     regrasp of development trials 100 and 101)."""
-    tr = copy.deepcopy(driven.tracker)
-    tr.s = replace(tr.s, turn_drift=0.002, travel_drift=0.01)
-    T_b, cov = tr._belief
-    c = T_b[:3, 3]
-    step = (transform_from_euler(c, [0.0, 0.0, 0.0])
-            @ transform_from_euler([0.0, 0.0, 0.0], [0.0, 0.0, 20.0])
-            @ transform_from_euler(-c, [0.0, 0.0, 0.0]))
+    tr, step, cov = _drifting(driven)
     for _ in range(9):
         tr.predict(step, split=True)
     added = np.diag(tr._belief[1] - cov)
