@@ -166,32 +166,11 @@ def run_trial(seed: int, arm_error: tuple[float, float] | None = None,
     (``ProcedureSettings.drive_servo``), from a tracking task that tracks every frame
     while the arm moves with ``stream`` as well (:mod:`oralnav.realtime.needle_tracking`);
     its record (JSON-able; ``difficulty`` in it unless the default)."""
-    from oralnav.config.rig import trial_rig
-    from oralnav.control.needle.procedure import (
-        NeedleProcedure,
-        ProcedureSettings,
-        port_drives,
-        port_pair,
-    )
-    from oralnav.control.needle.servo import ServoSettings
     from oralnav.realtime.needle_tracking import start_tracking
-    from oralnav.sim.world.needle_trials import CT1, trial_cell
-    from oralnav.sim.world.needle_truth import check_truth
 
     t0 = time.perf_counter()
-    # the cell is set up for the suture: its ports chosen together with the procedure's
-    # own rules (one arm drives and pulls, the other picks up and hands over)
-    error = (None if arm_error is None
-             else (arm_error[0] * 1e-3, math.radians(arm_error[1])))
-    cell, info = trial_cell(seed, rig=trial_rig(), difficulty=difficulty,
-                            drivable=port_drives(CT1), workable=port_pair(CT1),
-                            arm_error=error)
-    # the procedure is told the arms' accuracy (a maker's figure), never their errors
-    settings = ProcedureSettings(drive_servo=ServoSettings() if servo else None,
-                                 arm_accuracy=error)
-    proc = NeedleProcedure(cell, info.incision, info.surface_normal, settings,
-                           surface_outline=info.surface_outline, truth_check=check_truth,
-                           feed=start_tracking if servo and stream else None)
+    _, _, proc = trial_procedure(seed, arm_error, servo, difficulty,
+                                 feed=start_tracking if servo and stream else None)
     results = proc.run_all()
     steps, failure = first_failure(results)
     return {"seed": seed, "steps": steps, "failure": failure,
@@ -240,6 +219,48 @@ def _kept_trials(store: Path | None, seeds: Sequence[int],
     return kept
 
 
+def percentiles(values: Sequence[float], *qs: float) -> dict[str, float | None]:
+    """``{"p50": ..., ...}`` of ``values`` at each of ``qs`` (percent), to 0.1; None
+    each where there are no values."""
+    return {f"p{q:g}": (round(float(np.percentile(values, q)), 1) if len(values) else None)
+            for q in qs}
+
+
+def trial_procedure(seed: int, arm_error: tuple[float, float] | None = None,
+                    servo: bool = False, difficulty: float = 1.0, feed: Any = None
+                    ) -> tuple[Any, Any, Any]:
+    """``(cell, info, procedure)`` of trial ``seed`` as :func:`run_trial` runs it: the
+    trial cell at ``difficulty`` with its ports chosen for the suture, each arm off by
+    ``arm_error`` (mm, deg; the procedure told the magnitudes as the arms' accuracy,
+    never the errors), the drive servoed with ``servo``, fed by ``feed`` (a
+    :data:`~oralnav.control.needle.procedure.feed.FeedFactory`) where given, and the
+    truth checked."""
+    from oralnav.config.rig import trial_rig
+    from oralnav.control.needle.procedure import (
+        NeedleProcedure,
+        ProcedureSettings,
+        port_drives,
+        port_pair,
+    )
+    from oralnav.control.needle.servo import ServoSettings
+    from oralnav.sim.world.needle_trials import CT1, trial_cell
+    from oralnav.sim.world.needle_truth import check_truth
+
+    # the cell is set up for the suture: its ports chosen together with the procedure's
+    # own rules (one arm drives and pulls, the other picks up and hands over)
+    error = (None if arm_error is None
+             else (arm_error[0] * 1e-3, math.radians(arm_error[1])))
+    cell, info = trial_cell(seed, rig=trial_rig(), difficulty=difficulty,
+                            drivable=port_drives(CT1), workable=port_pair(CT1),
+                            arm_error=error)
+    settings = ProcedureSettings(drive_servo=ServoSettings() if servo else None,
+                                 arm_accuracy=error)
+    proc = NeedleProcedure(cell, info.incision, info.surface_normal, settings,
+                           surface_outline=info.surface_outline, truth_check=check_truth,
+                           feed=feed)
+    return cell, info, proc
+
+
 def stream_figures(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The streamed servo's figures over ``records`` (their ND figures): commands given,
     the per-drive command rate (Hz: p50, min; bound by the simulator's renderer), every
@@ -261,14 +282,12 @@ def stream_figures(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
                 if f.get("servo_rate_hz") is not None:
                     rates.append(f["servo_rate_hz"])
 
-    def pct(v: list[float], *qs: float) -> dict[str, float | None]:
-        return {f"p{q:g}": (round(float(np.percentile(v, q)), 1) if v else None) for q in qs}
-
-    work = {"features": pct(prepare, 50, 99), "tracking": pct(track, 50, 99)}
+    work = {"features": percentiles(prepare, 50, 99), "tracking": percentiles(track, 50, 99)}
     slower = max((w["p50"] for w in work.values() if w["p50"]), default=None)
     return {"commands": len(latency), "drives": len(rates),
-            "rate_hz": {**pct(rates, 50), "min": min(rates) if rates else None},
-            "latency_ms": {**pct(latency, 50, 99), "max": max(latency) if latency else None},
+            "rate_hz": {**percentiles(rates, 50), "min": min(rates) if rates else None},
+            "latency_ms": {**percentiles(latency, 50, 99),
+                           "max": max(latency) if latency else None},
             "frame_ms": work,
             "tracking_capacity_hz": round(1e3 / slower, 1) if slower else None}
 

@@ -34,14 +34,13 @@ from __future__ import annotations
 
 import copy
 import json
-import math
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+from oralnav.bench.needle import percentiles, trial_procedure
 
 #: The rates the frames are played back at by default (frames a second; 0: as fast as
 #: the task takes them).
@@ -51,29 +50,12 @@ TARGET_HZ = 30.0
 ARM_ERROR = (1.0, 0.5)
 
 
-def _pct(v: Sequence[float], *qs: float) -> dict[str, float | None]:
-    return {f"p{q:g}": (round(float(np.percentile(v, q)), 1) if len(v) else None) for q in qs}
-
-
 def record_drive(seed: int) -> dict[str, Any] | None:
     """Trial ``seed`` (development, ``ARM_ERROR`` arms) run to the end of its streamed
     drive; its frames, callables, starting tracker and ND figures (None where the drive's
     stream never started: an earlier step failed)."""
-    from oralnav.config.rig import trial_rig
-    from oralnav.control.needle.procedure import (
-        NeedleProcedure,
-        ProcedureSettings,
-        port_drives,
-        port_pair,
-    )
-    from oralnav.control.needle.servo import ServoSettings
     from oralnav.realtime.needle_tracking import start_tracking
-    from oralnav.sim.world.needle_trials import CT1, trial_cell
 
-    error = (ARM_ERROR[0] * 1e-3, math.radians(ARM_ERROR[1]))
-    cell, info = trial_cell(seed, rig=trial_rig(), drivable=port_drives(CT1),
-                            workable=port_pair(CT1), arm_error=error)
-    settings = ProcedureSettings(drive_servo=ServoSettings(), arm_accuracy=error)
     rec: dict[str, Any] = {"seed": seed, "frames": []}
 
     def recording(capture, prepare, track):
@@ -85,8 +67,7 @@ def record_drive(seed: int) -> dict[str, Any] | None:
             return images, meta
         return start_tracking(keeping, prepare, track)
 
-    proc = NeedleProcedure(cell, info.incision, info.surface_normal, settings,
-                           surface_outline=info.surface_outline, feed=recording)
+    _, _, proc = trial_procedure(seed, ARM_ERROR, servo=True, feed=recording)
     for step in ("NG", "NH", "ND"):
         r = proc.run(step)
         if step == "ND":
@@ -195,10 +176,10 @@ def run(seed: int = 100, trials: int = 5, fps: Sequence[float] = FPS,
             "fps": f, "frames": sum(o["frames"] for o in out),
             "tracked": sum(o["tracked"] for o in out),
             "skipped": sum(o["skipped"] for o in out),
-            "rate_hz": {**_pct(rates, 50), "min": min(rates) if rates else None},
-            "latency_ms": {**_pct(lat, 50, 99), "max": max(lat) if lat else None},
-            "track_ms": _pct([v for o in out for v in o["track_ms"]], 50, 99),
-            "prepare_ms": _pct([v for o in out for v in o["prepare_ms"]], 50, 99)}
+            "rate_hz": {**percentiles(rates, 50), "min": min(rates) if rates else None},
+            "latency_ms": {**percentiles(lat, 50, 99), "max": max(lat) if lat else None},
+            "track_ms": percentiles([v for o in out for v in o["track_ms"]], 50, 99),
+            "prepare_ms": percentiles([v for o in out for v in o["prepare_ms"]], 50, 99)}
         if progress:
             r = runs[f"{f:g}"]
             print(f"needle-stream: {'as fast as taken' if not f else f'{f:g} fps'}: "
@@ -213,7 +194,7 @@ def run(seed: int = 100, trials: int = 5, fps: Sequence[float] = FPS,
     return {"bench": "needle_stream", "seeds": [seed, seed + trials - 1],
             "split": "development", "arm_error": list(ARM_ERROR),
             "drives": len(recs), "closed_loop": closed, "replay": runs,
-            "command_ms": _pct(command, 50, 99) if command else None,
+            "command_ms": percentiles(command, 50, 99) if command else None,
             "target_hz": TARGET_HZ,
             "met": (None if at30 is None or at30["rate_hz"]["min"] is None
                     else bool(at30["rate_hz"]["min"] >= 0.95 * TARGET_HZ)),

@@ -646,8 +646,7 @@ class NeedleProcedure(CellActions):
             # every tracked frame (the rest as below, on the model and a final look)
             guided = next((k for k, v in enumerate(shown) if v < s.servo_shown), n + 1)
             start, streamed = self._drive_streamed(arm, run, poses, min(guided, n), go)
-        D = np.eye(4)
-        for k in range(start, n + 1):
+        for k in range(start, n + 1):    # start <= n: the loop sets D
             D = servo.correction(k)
             if k:
                 go(D @ poses[k], _pose_name(k, n))
@@ -750,7 +749,6 @@ class NeedleProcedure(CellActions):
                 if k - kc > STREAM_LAG:
                     raise ServoStop("stale", f"the newest tracked frame was captured at "
                                              f"{_pose_name(kc, n)}, {k - kc} commands ago")
-                now = time.monotonic()
                 seen = Seen.from_track(fr.track, fr.stamp, held=True)
                 # a frame a pose on from the last shares most of its error (the same
                 # views, the same biases): the frames of servo_every poses weigh as one
@@ -760,7 +758,7 @@ class NeedleProcedure(CellActions):
                 # goes on on the model until the frames of servo_every poses in a row
                 # are lost, as long as the looks servo goes without seeing (every frame
                 # counted stopped 3 of 80 drives at pose 1, as the tip entered)
-                run.take(kc, seen, now, tool, Dc, _pose_name(kc, n),
+                run.take(kc, seen, taken, tool, Dc, _pose_name(kc, n),
                          weight=1.0 / math.sqrt(s.servo_every),
                          lost_allowed=s.servo_every - 1)
                 k += 1
